@@ -1,0 +1,252 @@
+"""The `clumpylen` command.
+
+    clumpylen scenes                         built-in scenes, one line each
+    clumpylen show NAME [--resolved]         a scene as TOML, to start from
+    clumpylen validate SCENE                 check a scene; print it resolved and its stages
+    clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots]
+    clumpylen plot DIR                       figures of a finished run
+    clumpylen analyze DIR                    S/N and limiting magnitudes of a finished run
+
+User errors (an invalid scene, a missing file, a TOML syntax error) exit with
+status 2 and one line on stderr, without a traceback. Heavy modules (JAX, the
+pipeline) are imported only by the commands that need them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tomllib
+
+from .errors import ConfigError
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+
+
+class _UserError(Exception):
+    """A problem the user can fix; printed as one line, exit status 2."""
+
+
+def _load(scene_arg: str):
+    from . import scene as sc
+
+    try:
+        return sc.load_scene(scene_arg)
+    except tomllib.TOMLDecodeError as exc:
+        # tomllib's message already says "(at line L, column C)".
+        raise _UserError(f"{scene_arg}: invalid TOML: {exc}") from exc
+
+
+def _cmd_scenes(args) -> int:
+    from . import scene as sc
+
+    items = sc.list_builtin_scenes()
+    width = max((len(n) for n, _ in items), default=0)
+    for name, desc in items:
+        print(f"{name:<{width}}  {desc}".rstrip())
+    return EXIT_OK
+
+
+def _cmd_show(args) -> int:
+    from . import scene as sc
+
+    if args.resolved or os.path.isfile(args.scene) or args.scene not in dict(sc.list_builtin_scenes()):
+        # A file (or --resolved): validate first, so what is shown is a working scene.
+        s = _load(args.scene)
+        if args.resolved:
+            sys.stdout.write(sc.to_toml(s))
+        else:
+            with open(s.path, encoding="utf-8") as fh:
+                sys.stdout.write(fh.read())
+        return EXIT_OK
+    # A built-in: its own text, with the comments that explain it.
+    sys.stdout.write(sc.builtin_scene_text(args.scene))
+    return EXIT_OK
+
+
+def _cmd_validate(args) -> int:
+    from . import scene as sc
+
+    s = _load(args.scene)
+    print(f"# scene '{s.name}' is valid" + (f" ({s.path})" if s.path else ""))
+    if s.description:
+        print(f"# {s.description}")
+    print("# stages: " + ", ".join(sc.stages(s)))
+    print("# resolved (all defaults filled):")
+    sys.stdout.write(sc.to_toml(s))
+    return EXIT_OK
+
+
+def _parse_bands(text: str | None):
+    if text is None:
+        return None
+    names = [x.strip().upper() for x in text.split(",") if x.strip()]
+    if not names:
+        raise ConfigError("--bands", text, "comma-separated filter names, e.g. F115W,F200W")
+    return names
+
+
+def _cmd_simulate(args) -> int:
+    from . import scene as sc
+
+    s = _load(args.scene)
+    bands = _parse_bands(args.bands)
+    noise = False if args.no_noise else None
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError("--seed", args.seed, "an integer >= 0")
+    # Check the overrides against the scene before any computation.
+    sc.with_overrides(s, seed=args.seed, bands=bands, noise=noise)
+    out = os.path.abspath(args.out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ConfigError("--out", args.out, "a directory (this path is a file)")
+    try:
+        from .pipeline import simulate
+    except ImportError as exc:
+        print(f"clumpylen: error: the simulation pipeline is not available ({exc})", file=sys.stderr)
+        return EXIT_FAILURE
+    summary = simulate(s, out, bands=bands, seed=args.seed, noise=noise, progress=not args.quiet)
+    if args.plots:
+        from .plotting import plot_run
+
+        plot_run(out)
+    if not args.quiet:
+        _print_summary(summary, out)
+    return EXIT_OK
+
+
+def _print_summary(summary, out: str) -> None:
+    print(f"wrote {out}")
+    if not isinstance(summary, dict):
+        return
+    totals = summary.get("band_total_counts") or summary.get("total_counts") or {}
+    if isinstance(totals, dict):
+        for band, value in totals.items():
+            print(f"  {band}: total {value:.6g} counts/s" if isinstance(value, (int, float)) else f"  {band}: {value}")
+    timings = summary.get("timings_s") or summary.get("timings") or {}
+    if isinstance(timings, dict) and timings:
+        total = sum(v for v in timings.values() if isinstance(v, (int, float)))
+        print(f"  time: {total:.1f} s")
+
+
+def _existing_dir(path: str) -> str:
+    if not os.path.isdir(path):
+        raise FileNotFoundError(f"run directory not found: {path}")
+    return path
+
+
+def _cmd_plot(args) -> int:
+    d = _existing_dir(args.dir)
+    from .plotting import plot_run
+
+    result = plot_run(d)
+    if result:
+        for item in result if isinstance(result, (list, tuple)) else [result]:
+            print(item)
+    return EXIT_OK
+
+
+def _cmd_analyze(args) -> int:
+    d = _existing_dir(args.dir)
+    from .analysis import analyze_run
+
+    kwargs = {}
+    if args.snr_threshold is not None:
+        kwargs["snr_threshold"] = args.snr_threshold
+    result = analyze_run(d, **kwargs)
+    if isinstance(result, dict):
+        import json
+
+        from .io import _jsonable
+
+        print(json.dumps(_jsonable(result), indent=2))
+    elif result is not None:
+        print(result)
+    return EXIT_OK
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("clumpylen_jax")
+    except Exception:  # not installed (running from a checkout)
+        return "unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of `clumpylen` (exposed for docs and tests)."""
+    p = argparse.ArgumentParser(
+        prog="clumpylen",
+        description="Simulate strongly lensed clumpy galaxies as HST and JWST would see them.",
+    )
+    p.add_argument("--version", action="version", version=f"clumpylen_jax {_version()}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    q = sub.add_parser("scenes", help="list the built-in scenes")
+    q.set_defaults(func=_cmd_scenes)
+
+    q = sub.add_parser("show", help="print a scene as TOML (a starting point for your own)")
+    q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file")
+    q.add_argument("--resolved", action="store_true", help="print it with every default filled in")
+    q.set_defaults(func=_cmd_show)
+
+    q = sub.add_parser("validate", help="check a scene; print it resolved and the stages it runs")
+    q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file")
+    q.set_defaults(func=_cmd_validate)
+
+    q = sub.add_parser("simulate", help="simulate a scene and write images, catalogue and summary")
+    q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file")
+    q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
+    q.add_argument("--seed", type=int, help="override the scene's seed")
+    q.add_argument("--bands", metavar="F1,F2", help="simulate only these bands (comma-separated filters)")
+    q.add_argument("--no-noise", action="store_true", help="noise-free images only")
+    q.add_argument("--quiet", "-q", action="store_true", help="no progress output")
+    q.add_argument("--plots", action="store_true", help="also make the diagnostic figures")
+    q.set_defaults(func=_cmd_simulate)
+
+    q = sub.add_parser("plot", help="make the figures of a finished run")
+    q.add_argument("dir", metavar="DIR", help="output directory of `clumpylen simulate`")
+    q.set_defaults(func=_cmd_plot)
+
+    q = sub.add_parser("analyze", help="S/N and limiting magnitudes of a finished run")
+    q.add_argument("dir", metavar="DIR", help="output directory of `clumpylen simulate`")
+    q.add_argument("--snr-threshold", type=float, help="detection threshold in S/N (default: the analysis module's)")
+    q.set_defaults(func=_cmd_analyze)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `clumpylen` with `argv` (default sys.argv[1:]); returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help (0) or a usage error (2), already printed
+        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+    try:
+        return args.func(args)
+    except (ConfigError, _UserError) as exc:
+        print(f"clumpylen: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except FileNotFoundError as exc:
+        msg = exc.strerror and exc.filename and f"{exc.strerror}: {exc.filename}" or str(exc)
+        print(f"clumpylen: error: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+    except tomllib.TOMLDecodeError as exc:
+        print(f"clumpylen: error: invalid TOML: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except BrokenPipeError:
+        # Output piped into `head` and closed early: not an error. Point stdout
+        # at devnull so the interpreter's final flush does not complain.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_OK
+    except KeyboardInterrupt:
+        print("clumpylen: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
