@@ -887,8 +887,10 @@ def _instrument_defaults(instrument: str, filter_name: str, setting: str) -> dic
         return {}
     try:
         return dict(band_defaults(instrument, filter_name))
-    except KeyError as exc:
-        raise ConfigError(setting, filter_name, f"a filter known for {instrument}") from exc
+    except (KeyError, ConfigError) as exc:
+        # Re-raise under the band's own key path, which the user can find in the file.
+        raise ConfigError(setting, filter_name, f"a filter with a throughput curve for {instrument}"
+                          " (or give pixel_arcsec and zeropoint_ab)") from exc
 
 
 def _band(t, i: int, base_dir, noise: bool) -> Band:
@@ -931,6 +933,8 @@ def _output(t, band_names) -> Output:
     p = "output"
     t = _table(t, p)
     _check_keys(t, p, _OUTPUT_KEYS)
+    if "rgb" in t and not isinstance(t["rgb"], list):
+        raise ConfigError("output.rgb", t["rgb"], "a list of [R, G, B] filter triples")
     rgb = []
     for i, triple in enumerate(t.get("rgb", [])):
         tp = f"output.rgb[{i}]"
@@ -942,8 +946,6 @@ def _output(t, band_names) -> Output:
                 raise ConfigError(tp, triple, "filters among the [[bands]]: " + ", ".join(band_names)
                                   + f" (no band {x})")
         rgb.append(names)
-    if "rgb" in t and not isinstance(t["rgb"], list):
-        raise ConfigError("output.rgb", t["rgb"], "a list of [R, G, B] filter triples")
     hr_rgb = None
     if "hr_rgb_um" in t:
         v = t["hr_rgb_um"]

@@ -119,6 +119,20 @@ def test_band_defaults_from_instruments_when_available(monkeypatch):
     assert (s.bands[1].pixel_arcsec, s.bands[1].zeropoint_ab) == (0.031, 28.0)
 
 
+def test_band_defaults_error_names_the_band(monkeypatch):
+    def band_defaults(inst, filt):
+        raise ConfigError("filter", filt, "a filter of " + inst)
+
+    fake = types.ModuleType("clumpylen_jax.instruments")
+    fake.band_defaults = band_defaults
+    monkeypatch.setitem(sys.modules, "clumpylen_jax.instruments", fake)
+    d = minimal()
+    assert error_for(d).setting == "bands[0].filter"
+    for b in d["bands"]:
+        b.update(pixel_arcsec=0.03, zeropoint_ab=28.0)  # explicit values: no lookup needed
+    assert sc.scene_from_dict(d).bands[2].pixel_arcsec == 0.03
+
+
 def test_accuracy_table_and_dtype():
     d = minimal()
     d["render"] = {"accuracy": {"preset": "high", "subsampling": 6, "dtype": "float32"}}
