@@ -103,7 +103,10 @@ SFH_KINDS = ("constant", "burst")
 
 # Parameters of analytic lens components: name -> (required?, kind of value).
 # Kinds: "pos" (> 0), "nonneg" (>= 0), "q" (0 < q <= 1), "real", "pair".
-# The lensing layer builds its modules from exactly these names.
+# Names are those of the classes in clumpylen_jax.lensing.analytic (SIS, SIE,
+# NFW, DPIE, ExternalShear, MassSheet), so that `Class(**params)` builds them;
+# values are for the scene's z_source (scale = 1). A dpie takes exactly one of
+# b0_arcsec or sigma0_kms (then DPIE.from_sigma with the scene's D_ls/D_s).
 LENS_COMPONENT_PARAMS: dict[str, dict[str, tuple[bool, str]]] = {
     "sis": {"theta_e_arcsec": (True, "pos"), "center_arcsec": (False, "pair")},
     "sie": {
@@ -112,14 +115,15 @@ LENS_COMPONENT_PARAMS: dict[str, dict[str, tuple[bool, str]]] = {
     },
     "nfw": {"kappa_s": (True, "pos"), "rs_arcsec": (True, "pos"), "center_arcsec": (False, "pair")},
     "dpie": {
-        "theta_e_arcsec": (True, "pos"), "r_core_arcsec": (False, "nonneg"),
-        "r_cut_arcsec": (True, "pos"), "q": (False, "q"), "pa_rad": (False, "real"),
+        "b0_arcsec": (False, "pos"), "sigma0_kms": (False, "pos"), "rcore_arcsec": (False, "nonneg"),
+        "rcut_arcsec": (True, "pos"), "q": (False, "q"), "pa_rad": (False, "real"),
         "center_arcsec": (False, "pair"),
     },
     "shear": {"gamma1": (False, "real"), "gamma2": (False, "real"), "center_arcsec": (False, "pair")},
+    "sheet": {"kappa": (True, "real"), "center_arcsec": (False, "pair")},
 }
-_LENS_PARAM_DEFAULTS = {"q": 1.0, "pa_rad": 0.0, "center_arcsec": (0.0, 0.0), "r_core_arcsec": 0.0,
-                        "gamma1": 0.0, "gamma2": 0.0}
+_LENS_PARAM_DEFAULTS = {"q": 1.0, "pa_rad": 0.0, "center_arcsec": (0.0, 0.0), "rcore_arcsec": 0.0,
+                        "gamma1": 0.0, "gamma2": 0.0, "b0_arcsec": None, "sigma0_kms": None}
 
 # Accuracy presets. `subsampling`: sub-pixel samples per axis of each lens-plane
 # pixel (even, so that no sample sits on the cusp of an n >= 2 profile centred
@@ -825,8 +829,12 @@ def _lens_component(c, p) -> LensComponent:
             params[name] = _float(c, name, p, default, lo=0, hi=1, lo_open=True)
         else:
             params[name] = _float(c, name, p, default)
-    if kind == "dpie" and not params["r_core_arcsec"] < params["r_cut_arcsec"]:
-        raise ConfigError(_join(p, "r_cut_arcsec"), params["r_cut_arcsec"], "> r_core_arcsec")
+    if kind == "dpie":
+        if not params["rcore_arcsec"] < params["rcut_arcsec"]:
+            raise ConfigError(_join(p, "rcut_arcsec"), params["rcut_arcsec"], "> rcore_arcsec")
+        if (params["b0_arcsec"] is None) == (params["sigma0_kms"] is None):
+            raise ConfigError(p, c, "exactly one of b0_arcsec (arcsec) or sigma0_kms (km/s)")
+    params = {k: v for k, v in params.items() if v is not None}
     return LensComponent(kind=kind, params=params)
 
 

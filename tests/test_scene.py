@@ -260,6 +260,14 @@ def test_lens_exactly_one_kind():
     assert error_for(d).setting == "lens.components[1].rs_arcsec"
     d["lens"]["components"] = [{"kind": "sie", "theta_e_arcsec": 1.0, "q": 0.5, "gama": 0.1}]
     assert error_for(d).setting == "lens.components[0].gama"
+    d["lens"]["components"] = [{"kind": "dpie", "rcut_arcsec": 5.0}]
+    assert error_for(d).setting == "lens.components[0]"
+    d["lens"]["components"] = [{"kind": "dpie", "sigma0_kms": 300.0, "rcore_arcsec": 0.1, "rcut_arcsec": 20.0},
+                               {"kind": "shear", "gamma1": 0.05}, {"kind": "sheet", "kappa": 0.02}]
+    s = sc.scene_from_dict(d)
+    assert s.lens.components[0].params == {"sigma0_kms": 300.0, "rcore_arcsec": 0.1, "rcut_arcsec": 20.0,
+                                           "q": 1.0, "pa_rad": 0.0, "center_arcsec": (0.0, 0.0)}
+    assert sc.scene_from_dict(tomllib.loads(sc.to_toml(s))) == s
     d["lens"]["components"] = [{"kind": "point"}]
     assert error_for(d).setting == "lens.components[0].kind"
     d = minimal()
