@@ -400,17 +400,20 @@ def sample_ages_myr(
 
 # Envelope: the bounding box is cut into cells; each cell's envelope height is
 # the largest brightness seen on a (sub x sub) grid inside the cell (edges
-# included) times SAFETY, floored at FLOOR x the global maximum so that no cell
-# with unseen light gets zero probability. A candidate is drawn by picking a
+# included) times SAFETY, floored at FLOOR x the largest value seen in the cell
+# and its 8 neighbours, so that cells next to light keep a non-zero probability
+# even where the sub-grid saw none. A candidate is drawn by picking a
 # cell with probability ∝ height (equal areas) and a uniform point in it, and
 # accepted with probability f/height. This is exact whenever f ≤ height
 # everywhere; the sampler checks every candidate and, if one ever exceeds its
 # cell's height (e.g. an unresolved cusp), raises that height and starts over.
-_ENVELOPE_CELLS = 64
+_ENVELOPE_CELLS = 128
 _ENVELOPE_SUB = 5
 _ENVELOPE_SAFETY = 1.2
 _ENVELOPE_FLOOR = 1e-3
 _MAX_RESTARTS = 20
+_PROBE_CELLS = 64
+_PROBE_POINTS = 256
 
 
 def _brightness(host_brightness, b1, b2) -> np.ndarray:
@@ -439,7 +442,15 @@ def _envelope(host_brightness, bbox) -> np.ndarray:
     idx = np.arange(nc)[:, None] * (ns - 1) + np.arange(ns)[None, :]
     blocks = f[idx[:, :, None, None], idx[None, None, :, :]]  # (nc, ns, nc, ns)
     cell_max = blocks.max(axis=(1, 3))
-    return np.maximum(_ENVELOPE_SAFETY * cell_max, _ENVELOPE_FLOOR * peak)
+    # Floor from the neighbourhood (3 x 3 cells), not the global peak: it guards
+    # cells next to light that the sub-grid may have missed, without spending
+    # proposals on empty sky far from the galaxy (which a global floor would do
+    # for a cuspy, compact host in a wide box).
+    padded = np.pad(cell_max, 1)
+    neighbours = np.max(
+        [padded[1 + d0 : 1 + d0 + nc, 1 + d1 : 1 + d1 + nc] for d0 in (-1, 0, 1) for d1 in (-1, 0, 1)], axis=0
+    )
+    return np.maximum(_ENVELOPE_SAFETY * cell_max, _ENVELOPE_FLOOR * neighbours)
 
 
 def sample_positions(
@@ -457,9 +468,11 @@ def sample_positions(
     β2_max))`` bounds the sampled region: light outside it gets no clumps, so
     choose it to enclose essentially all of the host light.
 
-    Method: rejection sampling under a piecewise-constant envelope (64 x 64
+    Method: rejection sampling under a piecewise-constant envelope (128 x 128
     cells, each 1.2 x the largest brightness on a 5 x 5 sub-grid of the cell,
-    floored at 1e-3 of the peak). Positions are continuous; the result is an
+    floored at 1e-3 of the largest value in the cell and its 8 neighbours;
+    cells whose whole neighbourhood shows zero light are never proposed; the 64
+    brightest cells are probed with random points first). Positions are continuous; the result is an
     exact draw from the density restricted to the box as long as the envelope
     bounds it, which the sampler verifies on every candidate (a violating cell
     is raised and the whole draw restarted, so the returned sample was drawn
@@ -473,14 +486,19 @@ def sample_positions(
     height = _envelope(host_brightness, bbox_arcsec)
     nc = _ENVELOPE_CELLS
     w1, w2 = (x1 - x0) / nc, (y1 - y0) / nc
+    _probe_envelope(rng, height, host_brightness, x0, y0, w1, w2)
     for _ in range(_MAX_RESTARTS):
         cdf = np.cumsum(height.ravel())
         cdf /= cdf[-1]
         acc1, acc2 = [], []
-        got = 0
+        got = proposed = 0
         violated = False
         while got < n:
-            m = max(2 * (n - got), 256)
+            # Batch sized from the acceptance rate seen so far (the envelope's
+            # mass over the light's), so that a low rate does not mean many calls.
+            rate = max(got / proposed, 1e-3) if proposed else 0.5
+            m = int(min(1.2 * (n - got) / rate + 256, 2_000_000))
+            proposed += m
             cell = np.minimum(np.searchsorted(cdf, rng.random(m), side="right"), cdf.size - 1)
             i1, i2 = np.divmod(cell, nc)
             b1 = x0 + (i1 + rng.random(m)) * w1
@@ -500,6 +518,22 @@ def sample_positions(
         if not violated:
             return np.concatenate(acc1)[:n], np.concatenate(acc2)[:n]
     raise RuntimeError("sample_positions: the rejection envelope kept being violated; is host_brightness bounded?")
+
+
+def _probe_envelope(rng, height, host_brightness, x0, y0, w1, w2) -> None:
+    """Raise the heights of the brightest cells where random probes exceed them.
+
+    The brightest cells are where an unresolved peak (a cuspy bulge, a compact
+    host in a wide box) hides between sub-grid nodes. Probing them before any
+    sample is drawn costs little and makes the restarts of the sampler rare;
+    it draws no samples, so it cannot bias them.
+    """
+    order = np.argsort(height.ravel())[::-1][:_PROBE_CELLS]
+    i1, i2 = np.divmod(np.repeat(order, _PROBE_POINTS), height.shape[1])
+    b1 = x0 + (i1 + rng.random(i1.size)) * w1
+    b2 = y0 + (i2 + rng.random(i2.size)) * w2
+    f = _brightness(host_brightness, b1, b2)
+    np.maximum.at(height, (i1, i2), _ENVELOPE_SAFETY * f)
 
 
 def _validate_bbox(bbox) -> None:

@@ -542,8 +542,10 @@ def diffraction_psf(
         "a positive pixel scale in arcsec",
     )
     require(isinstance(n_wavelengths, int) and 1 <= n_wavelengths <= 64, "n_wavelengths", n_wavelengths, "an integer in [1, 64]")
-    band = load_filter(filter_name if not isinstance(filter_name, str) else f"{instrument} {filter_name}"
-                       if "/" not in filter_name and " " not in filter_name else filter_name)
+    # A bare band name is qualified with the instrument so that the curve is the
+    # instrument's own (filters.load_filter accepts "JWST/NIRCam F200W").
+    is_bare = isinstance(filter_name, str) and "/" not in filter_name and " " not in filter_name.strip()
+    band = load_filter(f"{instrument} {filter_name.strip()}" if is_bare else filter_name)
     diameter_m = TELESCOPE_DIAMETER_M[telescope]
     waves_m, weights = _band_sampling(np.asarray(band.wavelength_aa), np.asarray(band.throughput), n_wavelengths)
     lam_over_d_arcsec = float(band.pivot_wavelength_aa) * 1e-10 / diameter_m * 206264.80624709636

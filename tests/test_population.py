@@ -350,3 +350,24 @@ def test_catalog_invalid(tmp_path, change, column):
 def test_catalog_missing_file(tmp_path):
     with pytest.raises(ConfigError):
         read_clump_catalog(tmp_path / "nope.ecsv")
+
+
+def test_positions_cuspy_sersic_bulge_in_wide_box():
+    # n = 4 Sérsic, R_e = 0.1": a cusp far sharper than the envelope grid in a
+    # box of 60 R_e. Enclosed light: P(2n, b (r/R_e)^(1/n)) (regularised γ).
+    from scipy import special
+
+    n, re = 4.0, 0.1
+    b = special.gammaincinv(2 * n, 0.5)
+
+    def bulge(b1, b2):
+        return np.exp(-b * ((np.hypot(b1, b2) / re) ** (1 / n) - 1))
+
+    rng = np.random.default_rng(3)
+    b1, b2 = sample_positions(rng, 10000, bulge, ((-3.0, 3.0), (-3.0, 3.0)))
+    r = np.hypot(b1, b2)
+    r_max = 2.9  # the largest circle inside the box; condition on it
+    inside = r < r_max
+    norm = special.gammainc(2 * n, b * (r_max / re) ** (1 / n))
+    p = stats.kstest(r[inside], lambda s: special.gammainc(2 * n, b * (s / re) ** (1 / n)) / norm).pvalue
+    assert p > P_MIN, p
