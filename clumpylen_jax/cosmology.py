@@ -43,7 +43,7 @@ def dls_ds(z_lens: float, z_source: float, cosmology=None) -> float:
     zs = _check_z(z_source, "z_source")
     require(bool(np.all(zs > zl)), "z_source", z_source, f"a redshift above z_lens = {z_lens}")
     c = _cosmo(cosmology)
-    d_ls = c.angular_diameter_distance_z1z2(zl, zs)
+    d_ls = c.angular_diameter_distance(zl, zs) if _two_arg_da() else c.angular_diameter_distance_z1z2(zl, zs)
     d_s = c.angular_diameter_distance(zs)
     return _as_float(np.asarray((d_ls / d_s).decompose().value))
 
@@ -73,3 +73,10 @@ def distance_modulus(z: float, cosmology=None) -> float:
 def _as_float(x):
     x = np.asarray(x, dtype=float)
     return float(x) if x.ndim == 0 else x
+
+
+def _two_arg_da() -> bool:
+    """astropy >= 7.1 takes (z1, z2) in angular_diameter_distance; older versions need _z1z2."""
+    import inspect
+
+    return len(inspect.signature(FlatLambdaCDM.angular_diameter_distance).parameters) > 2
