@@ -18,6 +18,7 @@ from clumpylen_jax.psf import (
     psf_for_band,
     recenter_half_pixel,
     resample_psf,
+    sample_psf,
 )
 
 
@@ -329,3 +330,36 @@ def test_diffraction_psf_env_cache_and_coarse_pixels(tmp_path, monkeypatch):
     with pytest.raises(ConfigError) as err:
         diffraction_psf("Keck/NIRC2", "F814W", pixel_arcsec=0.05)
     assert err.value.setting == "instrument"
+
+
+def test_sample_psf_point_samples():
+    # Odd input, integer ratio: samples are every k-th input pixel exactly.
+    a = gaussian(41, 41, 6.0, offset=(0.4, -0.3))
+    psf = PSF(a, 0.01, True)
+    k = sample_psf(psf, 0.04)
+    assert k.shape == (11, 11)
+    np.testing.assert_allclose(k, psf.array[0::4, 0::4] / psf.array[0::4, 0::4].sum(), rtol=1e-10)
+    # Symmetric even input, non-integer ratio: centred on the central pixel.
+    k = sample_psf(PSF(gaussian(64, 64, 8.0), 0.01, True), 0.037)
+    m = k.shape[0]
+    assert m % 2 == 1 and abs(k.sum() - 1) < 1e-12
+    c = centroid(k)
+    assert abs(c[0] - (m - 1) / 2) < 1e-6 and abs(c[1] - (m - 1) / 2) < 1e-6
+    with pytest.raises(ConfigError):
+        sample_psf(psf, 0.04, size=10)
+
+
+@needs_data
+def test_sample_stdpsf_at_detector_pixels():
+    # Anderson's normalisation: the 4x effective PSF sums to ~16, so its samples
+    # at detector-pixel centres sum to ~1 (unit flux at detector sampling).
+    from astropy.io import fits
+
+    path = PSF_DIR / "hst_stdpsf" / "PSFSTD_WFC3IR_F160W.fits"
+    psf = load_psf_fits(path)
+    k = sample_psf(psf, psf.detector_pixel_arcsec)
+    assert k.shape == (25, 25)
+    with fits.open(path, ignore_missing_end=True) as hdul:
+        raw = np.asarray(hdul[0].data[4], dtype=float)  # the central PSF of the 3 x 3 grid
+    np.testing.assert_allclose(k, raw[2::4, 2::4] / raw[2::4, 2::4].sum(), rtol=1e-8, atol=1e-15)
+    assert 0.9 < raw[2::4, 2::4].sum() / (raw.sum() / 16) < 1.1
