@@ -192,8 +192,8 @@ def load_filter(name) -> Filter:
     """
     if isinstance(name, Filter):
         return name
-    if isinstance(name, os.PathLike) or (isinstance(name, str) and os.path.sep in name
-                                          and pathlib.Path(name).is_file()):
+    looks_like_path = isinstance(name, str) and (os.path.sep in name or "." in name)
+    if isinstance(name, os.PathLike) or (looks_like_path and pathlib.Path(name).is_file()):
         return filter_from_file(name)
     if not isinstance(name, str) or not name.strip():
         raise ConfigError("filter", name, "a filter name such as 'F200W' or a throughput file")

@@ -186,3 +186,30 @@ def test_bad_inputs_raise_config_error(kwargs):
     kw.update(kwargs)
     with pytest.raises(ConfigError):
         ab_magnitudes(mass, age, **kw)
+
+
+def test_yggdrasil_and_generic_table_loaders(tmp_path):
+    from clumpylen_jax.sps import load_table, load_yggdrasil
+
+    wave = np.geomspace(500.0, 5.0e4, 400)
+    lines = []
+    for age_yr, scale in ((1.0e6, 2.0), (1.0e7, 1.0), (1.0e8, 0.5)):
+        lines += [f" Age (yr):  {age_yr:.5E}", " Total stellar mass (Msolar):  0.10000E+07",
+                  f" Number of data points: {wave.size}", "   Lambda (AA)    Flux (erg/s/AA)"]
+        lines += [f"  {w:.4f}  {scale * 1e6 * L_SUN_ERG_S * (w / 1e4) ** -2:.6E}" for w in wave]
+    p = tmp_path / "ygg_spectra.txt"
+    p.write_text("\n".join(lines))
+    lib = load_yggdrasil(p, metallicity=0.004)
+    assert np.allclose(lib.ages_myr, [1.0, 10.0, 100.0])
+    # per M☉ in L☉/Å: the flux was for 1e6 M☉ in erg/s/Å
+    assert np.allclose(lib.lum_lsun_per_aa[0, 1], (wave / 1e4) ** -2, rtol=1e-5)
+    m = ab_magnitudes(1e6, 10.0, filters=["F150W", "F200W"], z=2.0, sfh="burst", igm=False, library=lib)
+    assert abs(float(m[0] - m[1])) < 1e-3  # flat f_ν
+
+    rows = [(a, w, (w / 1e4) ** -2) for a in (1.0, 10.0) for w in wave]
+    q = tmp_path / "table.txt"
+    np.savetxt(q, np.array(rows))
+    lib2 = load_table(q)
+    assert lib2.lum_lsun_per_aa.shape == (1, 2, wave.size)
+    with pytest.raises(ConfigError):
+        load_table(tmp_path / "missing.txt")
