@@ -1,0 +1,62 @@
+"""PSF convolution by zero-padded FFT: linear (not circular) convolution, centred.
+
+Kernels have odd sizes with their centre on the central pixel (`psf.resample_psf`
+produces them so); the output has the input's shape and flux that the PSF
+spreads beyond the frame is lost, never wrapped around to the other side.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.fft
+
+from .errors import ConfigError
+
+
+def check_psf_values(psf, name="psf"):
+    """Validate a PSF image (numpy): 2-D, finite, positive sum. Returns it normalised to unit sum."""
+    k = np.asarray(psf, dtype=float)
+    if k.ndim != 2:
+        raise ConfigError(name, f"array of shape {k.shape}", "a 2-D PSF image")
+    if not np.all(np.isfinite(k)):
+        bad = np.argwhere(~np.isfinite(k))[0]
+        raise ConfigError(name, f"non-finite value at pixel {tuple(int(i) for i in bad)}",
+                          "a PSF with finite values")
+    total = k.sum()
+    if not total > 0:
+        raise ConfigError(name, f"sum {total:g}", "a PSF with a positive sum")
+    return k / total
+
+
+def check_kernel(kernel, name="psf"):
+    """Validate and normalise a convolution kernel: a valid PSF with odd sizes."""
+    k = check_psf_values(kernel, name)
+    if k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
+        raise ConfigError(name, f"shape {k.shape}",
+                          "an odd-sized kernel centred on its central pixel "
+                          "(resample even PSFs with clumpylen_jax.psf.resample_psf)")
+    return k
+
+
+def fft_shape(image_shape, kernel_shape):
+    """Padded FFT shape for a linear convolution (fast sizes for scipy/numpy FFTs)."""
+    return tuple(scipy.fft.next_fast_len(int(n + m - 1), real=True)
+                 for n, m in zip(image_shape, kernel_shape))
+
+
+def kernel_rfft(kernel, image_shape, dtype=np.float64):
+    """The kernel's rfft2 on the padded grid used by `fft_convolve` (precompute once per band)."""
+    k = check_kernel(kernel)
+    shape = fft_shape(image_shape, k.shape)
+    return jnp.asarray(np.fft.rfft2(k.astype(dtype), s=shape))
+
+
+def fft_convolve(image, kernel_ft, kernel_shape):
+    """Linear convolution of `image` [..., ny, nx] with a kernel given by its padded rfft2."""
+    ny, nx = image.shape[-2:]
+    ky, kx = kernel_shape
+    shape = fft_shape((ny, nx), (ky, kx))
+    ft = jnp.fft.rfft2(image, s=shape)
+    full = jnp.fft.irfft2(ft * kernel_ft.astype(ft.dtype), s=shape)
+    return full[..., ky // 2:ky // 2 + ny, kx // 2:kx // 2 + nx].astype(image.dtype)
