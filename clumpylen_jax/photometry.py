@@ -165,7 +165,7 @@ def _mono_table(library: SSPLibrary, metallicity: float, nebular: bool, waveleng
     return f_nu / UJY_CGS
 
 
-def _prepare(filters, z, metallicity, sfh, sfh_duration_myr, dust_av, library, cosmology):
+def _prepare(z, metallicity, sfh, sfh_duration_myr, dust_av, library, cosmology):
     library = default_library() if library is None else library
     _check_config(z, dust_av, sfh, sfh_duration_myr, library)
     metallicity = float(library.metallicities[library.metallicity_index(metallicity)])
@@ -199,7 +199,7 @@ def band_fluxes_ujy(mass_msun, age_myr, *, filters, z, metallicity=0.004, sfh="c
     See `ab_magnitudes` for the arguments.
     """
     filts = load_filters(filters)
-    library, metallicity, d_l = _prepare(filters, z, metallicity, sfh, sfh_duration_myr, dust_av,
+    library, metallicity, d_l = _prepare(z, metallicity, sfh, sfh_duration_myr, dust_av,
                                          library, cosmology)
     _check_inputs(mass_msun, age_myr, library)
     neb = bool(nebular) and library.has_nebular
@@ -249,7 +249,7 @@ def monochromatic_fnu(mass_msun, age_myr, *, wavelength_obs_um, z, metallicity=0
     lam_um = np.atleast_1d(np.asarray(wavelength_obs_um, dtype=float))
     if lam_um.ndim != 1 or not np.all(np.isfinite(lam_um)) or np.any(lam_um <= 0):
         raise ConfigError("wavelength_obs_um", wavelength_obs_um, "positive wavelengths in μm")
-    library, metallicity, d_l = _prepare(None, z, metallicity, sfh, sfh_duration_myr, dust_av,
+    library, metallicity, d_l = _prepare(z, metallicity, sfh, sfh_duration_myr, dust_av,
                                          library, cosmology)
     _check_inputs(mass_msun, age_myr, library)
     neb = bool(nebular) and library.has_nebular

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import pathlib
 import re
 
@@ -131,7 +132,11 @@ def load_library_npz(path, name: str | None = None) -> SSPLibrary:
         neb = d["lum_nebular_lsun_per_aa"] if "lum_nebular_lsun_per_aa" in d else None
         surv = d["surviving_mass_fraction"] if "surviving_mass_fraction" in d else None
         meta = str(d["meta"]) if "meta" in d else ""
-        imf = re.search(r"'imf': '([^']*)'", meta)
+        try:
+            imf = json.loads(meta).get("imf", "unknown") if meta else "unknown"
+        except (ValueError, AttributeError):
+            imf = "unknown"
+
         return SSPLibrary(
             name=name or path.stem,
             ages_myr=np.asarray(d["ages_myr"], dtype=float),
@@ -140,7 +145,7 @@ def load_library_npz(path, name: str | None = None) -> SSPLibrary:
             lum_lsun_per_aa=np.asarray(d["lum_lsun_per_aa"]),
             lum_nebular_lsun_per_aa=None if neb is None else np.asarray(neb),
             surviving_mass_fraction=None if surv is None else np.asarray(surv),
-            imf=imf.group(1) if imf else "unknown",
+            imf=imf,
             notes=meta,
         )
 
