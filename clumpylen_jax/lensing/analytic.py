@@ -157,10 +157,11 @@ class SIE(_Lens):
 def _nfw_g(x):
     """g(x) = arccosh(1/x)/sqrt(1−x²) (x < 1), arccos(1/x)/sqrt(x²−1) (x > 1), 1 at x = 1.
 
-    A Taylor series is used for |x − 1| < 1e-3 (both branches cancel there).
+    A Taylor series (to d⁴, d = x − 1) is used for |d| < `_nfw_band(x)`, where
+    both branches lose digits to cancellation.
     """
     d = x - 1.0
-    near = jnp.abs(d) < 1e-3
+    near = jnp.abs(d) < _nfw_band(x)
     xs = jnp.where(near, 0.5, x)  # any value away from 1 for the unused branch
     lo = xs < 1.0
     xl = jnp.where(lo, xs, 0.5)
@@ -168,8 +169,13 @@ def _nfw_g(x):
     g_lo = jnp.arccosh(1.0 / xl) / jnp.sqrt(1.0 - xl * xl)
     g_hi = jnp.arccos(1.0 / xh) / jnp.sqrt(xh * xh - 1.0)
     g_far = jnp.where(lo, g_lo, g_hi)
-    g_near = 1.0 - 2.0 * d / 3.0 + 7.0 * d * d / 15.0
+    g_near = 1.0 + d * (-2.0 / 3.0 + d * (7.0 / 15.0 + d * (-12.0 / 35.0 + d * 83.0 / 315.0)))
     return jnp.where(near, g_near, g_far)
+
+
+def _nfw_band(x):
+    """Half-width of the series band around x = 1: truncation (~d⁵) vs cancellation (~eps/d)."""
+    return 1e-2 if jnp.result_type(x) == jnp.float32 else 1e-3
 
 
 class NFW(_Lens):
@@ -206,8 +212,9 @@ class NFW(_Lens):
         x = safe_hypot(theta1 - self.center_arcsec[0], theta2 - self.center_arcsec[1]) / self.rs_arcsec
         xs = jnp.where(x > 0, x, 1e-8)
         d = xs - 1.0
-        near = jnp.abs(d) < 1e-3
-        ratio = jnp.where(near, 1.0 / 3.0 - 0.4 * d,
+        near = jnp.abs(d) < _nfw_band(xs)
+        # (1 − g)/(x² − 1) = 1/3 − 2d/5 + 13d²/35 − 20d³/63 + …
+        ratio = jnp.where(near, 1.0 / 3.0 + d * (-0.4 + d * (13.0 / 35.0 - d * 20.0 / 63.0)),
                           (1.0 - _nfw_g(xs)) / jnp.where(near, 1.0, xs * xs - 1.0))
         return self.scale * 2.0 * self.kappa_s * ratio
 

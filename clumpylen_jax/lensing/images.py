@@ -7,8 +7,8 @@ parity-flipped triangles); the barycentric point in the lens plane is the first
 guess, refined by Newton's method on θ − α(θ) − β = 0 (optimistix). The number
 of images is static (`max_images`) with a validity mask. Derivatives with
 respect to β (and to lens parameters) come from implicit differentiation of the
-root (optimistix.ImplicitAdjoint); the triangle search itself is not
-differentiated (the guesses are wrapped in stop_gradient).
+root (see `refine_images`); the triangle search itself is not differentiated
+(the guesses are wrapped in stop_gradient).
 
 Limits: images closer together than ~half a grid pixel are merged; images in
 cells whose triangles fold over β more than the grid resolves (very close to a
@@ -27,7 +27,7 @@ import numpy as np
 import optimistix as optx
 
 from ..errors import ConfigError
-from .derived import _check_field, field_grid, lensing_quantities
+from .derived import _check_field, deflection_jacobian, field_grid, lensing_quantities
 from .raytrace import trace
 
 
@@ -99,26 +99,47 @@ def _lens_equation(theta, args):
 def refine_images(lens, beta1, beta2, theta1_guess, theta2_guess, *, rtol=1e-10, atol=1e-10, max_steps=40):
     """Newton refinement of image positions (vectorised over the guesses).
 
-    Differentiable with respect to β and the lens parameters by implicit
-    differentiation. Returns (theta1, theta2, residual_arcsec, converged).
+    The forward solve is optimistix's Newton root finder on θ − α(θ) − β = 0. Its
+    derivatives are those of the implicit function theorem, dθ = A⁻¹ (dβ + ∂α/∂p dp),
+    attached by one extra Newton step from the (stop-gradient) root, with A⁻¹
+    also held constant: this equals optimistix.ImplicitAdjoint's first
+    derivatives, but stays finite where A is singular (a source exactly on a
+    caustic gets a zero derivative instead of an error: ImplicitAdjoint's linear
+    solve raises there, and it cannot be transposed under vmap).
+    Returns (theta1, theta2, residual_arcsec, converged).
     """
     beta = jnp.stack([jnp.asarray(beta1), jnp.asarray(beta2)])
     dtype = jnp.result_type(theta1_guess, beta)
+    beta = beta.astype(dtype)
     if dtype == jnp.float32:  # tolerances a float32 solve can meet
         rtol, atol = max(rtol, 1e-6), max(atol, 1e-5)
     solver = optx.Newton(rtol=rtol, atol=atol)
+    lens_c = jax.lax.stop_gradient(lens)
+    beta_c = jax.lax.stop_gradient(beta)
 
-    def one(t1, t2):
-        y0 = jax.lax.stop_gradient(jnp.stack([t1, t2]).astype(dtype))
-        sol = optx.root_find(_lens_equation, solver, y0, args=(lens, beta.astype(dtype)),
-                             max_steps=max_steps, throw=False, adjoint=optx.ImplicitAdjoint())
-        th = sol.value
-        res = jnp.linalg.norm(_lens_equation(jax.lax.stop_gradient(th), (lens, beta)))
-        return th[0], th[1], res, sol.result == optx.RESULTS.successful
+    def forward(t1, t2):
+        y0 = jnp.stack([t1, t2]).astype(dtype)
+        sol = optx.root_find(_lens_equation, solver, y0, args=(lens_c, beta_c),
+                             max_steps=max_steps, throw=False)
+        th = jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, y0)
+        return th, sol.result == optx.RESULTS.successful
 
-    # lax.map (a scan) rather than vmap: reverse-mode through a vmapped
-    # optimistix implicit solve fails to transpose (optimistix 0.1, equinox 0.13).
-    return jax.lax.map(lambda t: one(t[0], t[1]), (jnp.ravel(theta1_guess), jnp.ravel(theta2_guess)))
+    th, conv = jax.vmap(forward)(jax.lax.stop_gradient(jnp.ravel(theta1_guess)),
+                                 jax.lax.stop_gradient(jnp.ravel(theta2_guess)))
+    th = jax.lax.stop_gradient(th)
+    t1, t2 = th[:, 0], th[:, 1]
+    # One implicit-differentiation Newton step (value change ~ residual ≈ 0).
+    a11, a12, a21, a22 = deflection_jacobian(lens_c, t1, t2)
+    m11, m12, m21, m22 = 1.0 - a11, -a12, -a21, 1.0 - a22
+    det = m11 * m22 - m12 * m21
+    ok = jnp.abs(det) > 1e3 * jnp.finfo(dtype).eps
+    inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), 0.0)
+    f1, f2 = trace(lens, t1, t2)
+    f1, f2 = f1 - beta[0], f2 - beta[1]
+    theta1 = t1 - inv_det * (m22 * f1 - m12 * f2)
+    theta2 = t2 - inv_det * (-m21 * f1 + m11 * f2)
+    res = jnp.hypot(jax.lax.stop_gradient(f1), jax.lax.stop_gradient(f2))
+    return theta1, theta2, res, conv
 
 
 def find_images(lens, beta1, beta2, *, field, pixel_arcsec, max_images=8, tol_arcsec=None,
