@@ -1,0 +1,249 @@
+"""Free parameters: which entries of the source are fitted, and the flat vector they map to.
+
+A fit moves a flat unconstrained vector u (what optimisers and samplers see).
+`Parametrization.state(u)` turns it into a `FitState` — the `Source` pytree plus
+a per-band background level and, optionally, clump masses and ages — by
+transforming each entry to its physical value (`transforms.py`: log for
+positive quantities, scaled logistic for bounded ones, identity for positions
+and angles) and writing it into a fixed template with `eqx.tree_at`. Entries
+that are not free keep the template's values.
+
+Free entries are named by a path into the FitState, relative to the source for
+source fields:
+
+    "clumps.flux", "clumps.center_arcsec", "clumps.re_arcsec", "clumps.q",
+    "clumps.pa_rad", "clumps.n", "bulge.flux", "disk.sersic.re_arcsec", ...,
+    "background" (per band, counts/s/pixel), "mass_msun", "age_myr" (clumps,
+    with a `photometric.ClumpPhotometry` in the state).
+
+and selected with ``free = {path: selection}`` where a selection is True (every
+element), a sequence of ints (rows along the first axis: clumps for clump
+fields, bands for host fluxes), a boolean mask of the leaf's shape, or a
+`Free(select, transform)` to override the default transform.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError
+from ..source import Source
+from .transforms import Transform, default_transform
+
+_TOP_LEVEL = ("background", "mass_msun", "age_myr")
+
+
+class FitState(eqx.Module):
+    """What a fit varies: the source, a background level per band, optional clump masses/ages.
+
+    source: the `Source` (its clump fluxes are ignored when `photometry` is set).
+    background_counts_per_s: [B] additive level per band on top of the model's sky.
+    mass_msun, age_myr: [N] clump masses (M☉ formed) and ages (Myr), used only with
+        `photometry` (a `photometric.ClumpPhotometry`), which turns them into flux[N, B].
+    """
+
+    source: Source
+    background_counts_per_s: jnp.ndarray
+    mass_msun: Optional[jnp.ndarray] = None
+    age_myr: Optional[jnp.ndarray] = None
+    photometry: Any = eqx.field(static=True, default=None)
+
+    def render_source(self) -> Source:
+        """The source the scene model renders (clump fluxes from mass and age when asked)."""
+        if self.photometry is None or self.mass_msun is None:
+            return self.source
+        flux = self.photometry.counts_per_s(self.mass_msun, self.age_myr)
+        return eqx.tree_at(lambda s: s.clumps.flux, self.source, flux.astype(self.source.clumps.flux.dtype))
+
+
+def make_state(source: Source, n_bands: int, *, background_counts_per_s=None, mass_msun=None,
+               age_myr=None, photometry=None, dtype=jnp.float64) -> FitState:
+    """A FitState with every floating leaf cast to `dtype` (weak types would change jit keys)."""
+    bg = jnp.zeros(n_bands, dtype) if background_counts_per_s is None else \
+        jnp.asarray(background_counts_per_s, dtype).reshape(n_bands)
+    if (mass_msun is None) != (age_myr is None) or (mass_msun is not None and photometry is None):
+        raise ConfigError("mass_msun/age_myr", "partial", "both masses and ages, and a photometry map")
+    return FitState(source.astype(dtype), bg,
+                    None if mass_msun is None else jnp.asarray(mass_msun, dtype),
+                    None if age_myr is None else jnp.asarray(age_myr, dtype), photometry)
+
+
+@dataclasses.dataclass(frozen=True)
+class Free:
+    """A free entry: `select` (True, rows, or a boolean mask) and an optional transform override."""
+
+    select: Any = True
+    transform: Optional[Transform] = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FreeLeaf:
+    """One free leaf, resolved: its path, leaf shape, flat indices of free elements, transform."""
+
+    path: str
+    shape: tuple
+    index: tuple
+    transform: Transform
+
+    @property
+    def size(self):
+        return len(self.index)
+
+
+def _getter(path: str):
+    parts = path.split(".")
+    if parts[0] not in _TOP_LEVEL:
+        parts = ["source"] + parts
+    names = {"background": "background_counts_per_s"}
+    parts = [names.get(p, p) for p in parts]
+    return lambda st: functools.reduce(getattr, parts, st)
+
+
+def _resolve(state: FitState, path: str, spec) -> FreeLeaf:
+    spec = spec if isinstance(spec, Free) else Free(spec)
+    try:
+        leaf = _getter(path)(state)
+    except AttributeError:
+        leaf = None
+    if leaf is None:
+        raise ConfigError("free", path, "a path to an existing array of the fit state "
+                          "(e.g. clumps.flux, bulge.re_arcsec, background)")
+    shape = tuple(np.shape(leaf))
+    sel = spec.select
+    if sel is True or sel is None:
+        mask = np.ones(shape, bool)
+    elif isinstance(sel, np.ndarray) and sel.dtype == bool or (
+            np.asarray(sel).dtype == bool and np.shape(sel) == shape):
+        mask = np.asarray(sel, bool)
+        if mask.shape != shape:
+            raise ConfigError(f"free[{path}]", mask.shape, f"a boolean mask of shape {shape}")
+    else:
+        rows = np.atleast_1d(np.asarray(sel, int))
+        if len(shape) == 0 or np.any(rows < 0) or np.any(rows >= shape[0]):
+            raise ConfigError(f"free[{path}]", sel, f"row indices below {shape[0] if shape else 0}")
+        mask = np.zeros(shape, bool)
+        mask[rows] = True
+    index = tuple(int(i) for i in np.flatnonzero(mask.ravel()))
+    transform = spec.transform or default_transform(path)
+    return FreeLeaf(path, shape, index, transform)
+
+
+class Parametrization(eqx.Module):
+    """The map between a flat unconstrained vector u and a FitState.
+
+    Build with `parametrize(state, free)`. Methods are pure and jit/vmap/grad-safe.
+    Ordering of u: leaves in the order of `free`, elements of a leaf in C order.
+    """
+
+    template: FitState
+    leaves: tuple = eqx.field(static=True)
+
+    @property
+    def size(self) -> int:
+        return sum(l.size for l in self.leaves)
+
+    @property
+    def labels(self) -> tuple:
+        """One label per entry of u, e.g. "clumps.flux[0,1]" (clump 0, band 1)."""
+        out = []
+        for l in self.leaves:
+            for i in l.index:
+                idx = np.unravel_index(i, l.shape) if l.shape else ()
+                out.append(f"{l.path}[{','.join(str(int(k)) for k in idx)}]")
+        return tuple(out)
+
+    def _split(self, vec):
+        parts, start = [], 0
+        for l in self.leaves:
+            parts.append(vec[start:start + l.size])
+            start += l.size
+        return parts
+
+    def physical_vector(self, u):
+        """Physical values x(u), same layout as u."""
+        return jnp.concatenate([l.transform.forward(p) for l, p in zip(self.leaves, self._split(u))]
+                               ) if self.leaves else jnp.zeros(0)
+
+    def unconstrained_vector(self, x):
+        """u(x): the inverse of `physical_vector`."""
+        x = jnp.asarray(x)
+        return jnp.concatenate([l.transform.inverse(p) for l, p in zip(self.leaves, self._split(x))]
+                               ) if self.leaves else jnp.zeros(0)
+
+    def log_abs_det_jacobian(self, u):
+        """ln |dx/du| summed: add to a log density flat in x to sample in u."""
+        return sum(jnp.sum(l.transform.log_abs_det_jacobian(p))
+                   for l, p in zip(self.leaves, self._split(u)))
+
+    def state_from_physical(self, x) -> FitState:
+        """The template with its free entries replaced by the physical values x."""
+        state = self.template
+        for l, p in zip(self.leaves, self._split(x)):
+            get = _getter(l.path)
+            old = jnp.asarray(get(state))
+            new = old.ravel().at[np.asarray(l.index, int)].set(p.astype(old.dtype)).reshape(l.shape)
+            state = eqx.tree_at(get, state, new)
+        return state
+
+    def state(self, u) -> FitState:
+        """The FitState at unconstrained u."""
+        return self.state_from_physical(self.physical_vector(u))
+
+    def physical_of_state(self, state: Optional[FitState] = None):
+        """The free entries of `state` (default: the template) as a physical vector."""
+        state = self.template if state is None else state
+        parts = [jnp.asarray(_getter(l.path)(state)).ravel()[np.asarray(l.index, int)]
+                 for l in self.leaves]
+        return jnp.concatenate(parts) if parts else jnp.zeros(0)
+
+    def initial(self, state: Optional[FitState] = None):
+        """u of `state` (default: the template): the usual optimiser start."""
+        return self.unconstrained_vector(self.physical_of_state(state))
+
+    def scatter(self, values, fill=np.nan):
+        """A FitState-shaped pytree holding `values` (layout of u) at free entries, `fill` elsewhere.
+
+        Used to attach errors to parameters (fixed entries get NaN: not estimated).
+        """
+        def fill_leaf(x):
+            return jnp.full(jnp.shape(x), fill, x.dtype) if eqx.is_inexact_array(x) else x
+
+        blank = jax.tree_util.tree_map(fill_leaf, self.template)
+        return Parametrization(blank, self.leaves).state_from_physical(jnp.asarray(values))
+
+
+def parametrize(state: FitState, free) -> Parametrization:
+    """Resolve `free` (a mapping path → selection, or a sequence of paths) against `state`."""
+    if isinstance(free, str):
+        free = [free]
+    items = free.items() if isinstance(free, dict) else [(p, True) for p in free]
+    leaves = tuple(_resolve(state, path, spec) for path, spec in items)
+    paths = [l.path for l in leaves]
+    if len(set(paths)) != len(paths):
+        raise ConfigError("free", paths, "each path once")
+    if state.photometry is not None and any(p == "clumps.flux" for p in paths):
+        raise ConfigError("free", "clumps.flux", "mass_msun/age_myr when fluxes come from photometry")
+    leaves = tuple(l for l in leaves if l.size > 0)
+    return Parametrization(state, leaves)
+
+
+def default_free(source: Source, *, clump_fields=("flux", "center_arcsec", "re_arcsec"),
+                 host_fields=(), background=False) -> dict:
+    """A `free` mapping: the given clump fields of every clump, host fields of present hosts."""
+    free = {}
+    if source.clumps is not None and source.clumps.count > 0:
+        free.update({f"clumps.{f}": True for f in clump_fields})
+    for name, comp in (("bulge", source.bulge),
+                       ("disk.sersic", None if source.disk is None else source.disk.sersic)):
+        if comp is not None:
+            free.update({f"{name}.{f}": True for f in host_fields})
+    if background:
+        free["background"] = True
+    return free

@@ -1,0 +1,119 @@
+"""Uncertainties at an optimum: Fisher matrix, Laplace approximation, delta method.
+
+- `fisher_matrix`: F = Jᵀ W J with J = ∂μ/∂x, the model images' Jacobian in the
+  *physical* free parameters x, and W = mask/σ² — the data's variances for
+  fixed-variance Gaussian data, else the expected Poisson variance μ/t (the
+  Fisher matrix of the Poisson/Cash likelihood; for the model-variance Gaussian
+  the term from ∂σ²/∂x is left out, negligible when counts are large). Needs no
+  data at all for forecasts (`data=None`).
+- `laplace`: the Hessian of −ln posterior in the unconstrained space at the
+  optimum, inverted, then mapped to x by the delta method
+  Cov_x = D Cov_u Dᵀ, D = diag(dx/du).
+
+Physical-space Fisher errors stay meaningful at the edge of a transform's domain
+(a clump at zero flux: dx/du = x → 0 would make delta-method errors vanish), so
+they are what `fit_table` and detectability use by default.
+
+Degenerate directions (blended clumps, a clump with zero flux whose position
+the data cannot tell) make F singular. `safe_inverse` floors eigenvalues at
+`rcond`·max so the covariance stays finite and reports those directions with
+very large variances instead of NaN.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .likelihood import ImageData, make_log_posterior, predicted_images
+from .params import Parametrization
+
+
+class Uncertainty(eqx.Module):
+    """Parameter estimates with a covariance: labels, x (physical), cov, err = √diag(cov)."""
+
+    labels: tuple = eqx.field(static=True)
+    x: jnp.ndarray
+    cov: jnp.ndarray
+
+    @property
+    def err(self):
+        return jnp.sqrt(jnp.diag(self.cov))
+
+    @property
+    def corr(self):
+        e = self.err
+        return self.cov / jnp.outer(e, e)
+
+
+def safe_inverse(matrix, rcond: float = 1e-12):
+    """Inverse of a symmetric positive semi-definite matrix with eigenvalues floored at rcond·max.
+
+    Null directions come back with variance 1/(rcond·max): huge but finite.
+    """
+    m = 0.5 * (matrix + matrix.T)
+    w, v = jnp.linalg.eigh(m)
+    floor = rcond * jnp.maximum(jnp.max(jnp.abs(w)), jnp.finfo(m.dtype).tiny / rcond)
+    w = jnp.maximum(w, floor)
+    return (v / w[None, :]) @ v.T
+
+
+def _model_vector(scene_model, param, x):
+    return jnp.concatenate([img.ravel() for img in
+                            predicted_images(scene_model, param.state_from_physical(x))])
+
+
+def _weights(scene_model, data: Optional[ImageData], mu):
+    """1/σ² per pixel, flattened over bands, with the mask applied."""
+    parts, start = [], 0
+    for k, lay in enumerate(scene_model.layouts):
+        size = lay.grid.shape[0] * lay.grid.shape[1]
+        mu_k = mu[start:start + size]
+        start += size
+        mask = 1.0 if data is None else data.masks[k].ravel()
+        if data is not None and data.kind == "gaussian":
+            w = 1.0 / data.variances[k].ravel()
+        else:
+            w = lay.exptime_s / jnp.maximum(mu_k, 1e-12)
+        parts.append(mask * w * jnp.ones_like(mu_k))
+    return jnp.concatenate(parts)
+
+
+@eqx.filter_jit
+def _fisher(scene_model, data, param, x):
+    f = lambda xx: _model_vector(scene_model, param, xx)  # noqa: E731
+    mu = f(x)
+    jac = jax.jacfwd(f)(x)  # forward mode: one pass per free parameter
+    w = _weights(scene_model, data, mu)
+    return (jac * w[:, None]).T @ jac
+
+
+def fisher_matrix(scene_model, param: Parametrization, x=None, data: Optional[ImageData] = None):
+    """Fisher matrix of the physical free parameters at x (default: the template's values)."""
+    x = param.physical_of_state() if x is None else jnp.asarray(x)
+    return _fisher(scene_model, data, param, x)
+
+
+def fisher_uncertainty(scene_model, param: Parametrization, x=None,
+                       data: Optional[ImageData] = None, rcond: float = 1e-12) -> Uncertainty:
+    """Marginal (Cramér–Rao) covariance of the physical free parameters: F⁻¹."""
+    x = param.physical_of_state() if x is None else jnp.asarray(x)
+    return Uncertainty(param.labels, x, safe_inverse(fisher_matrix(scene_model, param, x, data), rcond))
+
+
+@eqx.filter_jit
+def _neg_log_post_hessian(scene_model, data, param, u, log_prior):
+    lp = make_log_posterior(scene_model, data, param, log_prior=log_prior, jacobian=False)
+    return jax.hessian(lambda v: -lp(v))(u)
+
+
+def laplace(scene_model, data: ImageData, param: Parametrization, u, *, log_prior=None,
+            rcond: float = 1e-12) -> Uncertainty:
+    """Laplace approximation at the optimum u, mapped to physical parameters (delta method)."""
+    u = jnp.asarray(u)
+    cov_u = safe_inverse(_neg_log_post_hessian(scene_model, data, param, u, log_prior), rcond)
+    d = jax.jacfwd(param.physical_vector)(u)  # diagonal: the transforms act elementwise
+    return Uncertainty(param.labels, param.physical_vector(u), d @ cov_u @ d.T)
