@@ -133,6 +133,14 @@ class _BandLayout:
 # ------------------------------------------------------------------ static helpers
 
 
+def _radius_enclosing(fraction, re_arcsec, n):
+    """Major-axis radius holding `fraction` of a Sérsic's light (numpy; build-time only)."""
+    from scipy.special import gammaincinv
+    n = np.asarray(n, float)
+    return np.asarray(re_arcsec, float) * (gammaincinv(2 * n, fraction)
+                                           / gammaincinv(2 * n, 0.5)) ** n
+
+
 def source_extent(source: Source, flux_fraction: float, stamp_flux_fraction: float):
     """(center (2,), radius arcsec) of a disc holding the source's light, from concrete parameters."""
     comps = [c for c in (source.bulge, source.disk.sersic if source.disk is not None else None)
@@ -147,14 +155,13 @@ def source_extent(source: Source, flux_fraction: float, stamp_flux_fraction: flo
         raise ConfigError("source", "no components", "at least one of bulge, disk or clumps")
     radius = 0.0
     for c in comps:
-        r = float(profiles.sersic_radius_enclosing(flux_fraction, float(c.re_arcsec), float(c.n)))
+        r = float(_radius_enclosing(flux_fraction, c.re_arcsec, c.n))
         radius = max(radius, r + float(np.hypot(*(np.asarray(c.center_arcsec) - center))))
     if source.clumps is not None and source.clumps.count > 0:
         cl = source.clumps
         re = np.asarray(cl.re_arcsec, float)
         n = np.asarray(cl.n, float)
-        rcut = np.array([float(profiles.sersic_radius_enclosing(stamp_flux_fraction, r, k))
-                         for r, k in zip(re, n)])
+        rcut = _radius_enclosing(stamp_flux_fraction, re, n)
         d = np.hypot(*(np.asarray(cl.center_arcsec, float) - center).T)
         radius = max(radius, float(np.max(d + rcut)))
     return np.asarray(center), radius
@@ -210,6 +217,14 @@ def traced_pixels(lens, hr_grid: Grid, center, radius):
 # ------------------------------------------------------------------ the model
 
 
+def _n_bands(source: Source) -> int:
+    for comp in (source.bulge, source.disk.sersic if source.disk is not None else None):
+        if comp is not None:
+            return comp.flux.shape[0]
+    return source.clumps.flux.shape[1]
+
+
+
 class SceneModel(eqx.Module):
     """A scene's forward model; build it with `build_model`."""
 
@@ -246,7 +261,7 @@ class SceneModel(eqx.Module):
         """Flux [B, M] of every traced lens-plane pixel (counts/s)."""
         b1, b2 = self.beta1, self.beta2
         w = self.ray_weights
-        nb = len(self.layouts)
+        nb = _n_bands(source)
         dtype = b1.dtype
         total = jnp.zeros((nb, b1.shape[0]), dtype)
         if source.bulge is not None:
@@ -272,6 +287,37 @@ class SceneModel(eqx.Module):
 
                 total = total + jax.lax.map(one_band, padded)
         return total * self.hr_grid.pixel_arcsec**2
+
+    def source_magnification_map(self):
+        """Lens-plane area landing on each clump-grid pixel / that pixel's area (grid mode).
+
+        The adjoint of the ray-tracing interpolation applied to ones: Σ over a
+        clump's stamp of this map × its light is exactly the magnification the
+        model gives that clump within the field.
+        """
+        g = self.clump_grid
+        dtype = self.beta1.dtype
+        x = (self.beta1 - g.x0_arcsec) / g.pixel_arcsec + 1.0
+        y = (self.beta2 - g.y0_arcsec) / g.pixel_arcsec + 1.0
+
+        def lensed_total(img):
+            return jnp.sum(bilinear_interpolate(img, x, y) @ self.ray_weights)
+
+        zeros = jnp.zeros((g.ny + 2, g.nx + 2), dtype)
+        grad = jax.grad(lensed_total)(zeros)[1:-1, 1:-1]
+        return grad * (self.hr_grid.pixel_arcsec / g.pixel_arcsec) ** 2
+
+    def clump_magnifications(self, source: Source):
+        """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
+        cl = source.clumps
+        mu = self.source_magnification_map()
+        stamps, i0, j0 = render.clump_stamps(cl, self.clump_grid, self.clump_stamp,
+                                             order=self.accuracy.source_order,
+                                             core=self.accuracy.exact_core)
+        k = jnp.arange(self.clump_stamp)
+        rows = jnp.clip(j0[:, None, None] + k[None, :, None], 0, self.clump_grid.ny - 1)
+        cols = jnp.clip(i0[:, None, None] + k[None, None, :], 0, self.clump_grid.nx - 1)
+        return jnp.sum(stamps * mu[rows, cols], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
 
     def lens_plane(self, source: Source):
         """High-resolution lens-plane images [B, ny, nx], counts/s per lens-plane pixel."""

@@ -121,7 +121,7 @@ def clumps_brightness(clumps: Clumps, x1, x2):
 
 def _sampled_image(brightness, grid: Grid, order: int, dtype):
     """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling."""
-    offs, wts = gauss_legendre_offsets(order)
+    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))  # Python floats keep float32
     p = grid.pixel_arcsec
     xc = jnp.asarray(grid.x_centers(), dtype)[None, :]
     yc = jnp.asarray(grid.y_centers(), dtype)[:, None]
@@ -199,7 +199,7 @@ def clump_stamps(clumps: Clumps, grid: Grid, stamp: int, *, order: int = 3, core
     p = grid.pixel_arcsec
     dtype = jnp.result_type(clumps.re_arcsec)
     bvals = profiles.sersic_b(clumps.n)
-    offs, wts = gauss_legendre_offsets(order)
+    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))  # Python floats keep float32
     k = jnp.arange(stamp)
     core = min(core, stamp)
 
@@ -252,8 +252,8 @@ def stamp_size(re_arcsec_max: float, n_max: float, pixel_arcsec: float, *,
                flux_fraction: float = 0.9999, minimum: int = 8) -> int:
     """Static stamp side (pixels, even) that holds `flux_fraction` of the largest clump."""
     from scipy.special import gammaincinv
-    b = float(profiles.sersic_b(float(n_max)))
-    r = re_arcsec_max * (gammaincinv(2 * n_max, flux_fraction) / b) ** n_max
+    r = re_arcsec_max * (gammaincinv(2 * n_max, flux_fraction)
+                         / gammaincinv(2 * n_max, 0.5)) ** n_max
     side = int(np.ceil(2 * r / pixel_arcsec)) + 2
     side = max(side, minimum)
     return side + (side % 2)

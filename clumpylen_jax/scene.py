@@ -125,17 +125,20 @@ LENS_COMPONENT_PARAMS: dict[str, dict[str, tuple[bool, str]]] = {
 _LENS_PARAM_DEFAULTS = {"q": 1.0, "pa_rad": 0.0, "center_arcsec": (0.0, 0.0), "rcore_arcsec": 0.0,
                         "gamma1": 0.0, "gamma2": 0.0, "b0_arcsec": None, "sigma0_kms": None}
 
-# Accuracy presets. `subsampling`: sub-pixel samples per axis of each lens-plane
-# pixel (even, so that no sample sits on the cusp of an n >= 2 profile centred
-# on a pixel); `psf_oversampling`: the detector grid is oversampled by this
-# factor when convolving with the PSF; `source_mode`: "grid" evaluates the
-# source once on the source-plane grid and interpolates, "analytic" evaluates
-# the profiles at every ray (exact, slower).
-ACCURACY_PRESETS: dict[str, dict[str, Any]] = {
-    "fast": {"subsampling": 1, "psf_oversampling": 1, "source_mode": "grid"},
-    "default": {"subsampling": 2, "psf_oversampling": 2, "source_mode": "grid"},
-    "high": {"subsampling": 4, "psf_oversampling": 4, "source_mode": "analytic"},
-}
+# Accuracy presets, the knobs a scene file can name: `subsampling` is the
+# Gauss–Legendre order per lens-plane pixel (rays per pixel = its square; no
+# node ever sits on a pixel centre, so no sample lands on a cusp),
+# `psf_oversampling` the odd factor of the grid, finer than the detector, on
+# which the PSF acts, `source_mode` "grid" (clumps on the source-plane grid,
+# interpolated at each ray) or "analytic" (every clump at every ray). The
+# values come from clumpylen_jax.model.ACCURACY_PRESETS, chosen by benchmarks/.
+def _scene_presets() -> dict[str, dict[str, Any]]:
+    from .model import ACCURACY_PRESETS as model_presets
+    return {name: {"subsampling": a.lens_subsampling, "psf_oversampling": a.psf_oversampling,
+                   "source_mode": a.source_mode} for name, a in model_presets.items()}
+
+
+ACCURACY_PRESETS: dict[str, dict[str, Any]] = _scene_presets()
 SOURCE_MODES = ("grid", "analytic")
 DTYPES = ("float64", "float32")
 
@@ -309,8 +312,8 @@ class Accuracy:
     """Resolved accuracy knobs; `preset` is the preset they start from."""
 
     preset: str = "default"
-    subsampling: int = 2
-    psf_oversampling: int = 2
+    subsampling: int = 3
+    psf_oversampling: int = 3
     source_mode: str = "grid"
 
 
@@ -863,9 +866,12 @@ def _render(t) -> Render:
         acc = Accuracy(
             preset=preset,
             subsampling=_int(a, "subsampling", ap, base["subsampling"], lo=1, hi=64),
-            psf_oversampling=_int(a, "psf_oversampling", ap, base["psf_oversampling"], lo=1, hi=16),
+            psf_oversampling=_int(a, "psf_oversampling", ap, base["psf_oversampling"], lo=1, hi=15),
             source_mode=_choice(a, "source_mode", ap, SOURCE_MODES, base["source_mode"]),
         )
+        if acc.psf_oversampling % 2 == 0:
+            raise ConfigError(f"{ap}.psf_oversampling", acc.psf_oversampling,
+                              "an odd integer (detector pixel centres fall on sub-pixel centres)")
         acc_dtype = _choice(a, "dtype", ap, DTYPES, None)
         if acc_dtype is not None:
             if dtype is not None and dtype != acc_dtype:

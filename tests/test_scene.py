@@ -137,7 +137,8 @@ def test_accuracy_table_and_dtype():
     d = minimal()
     d["render"] = {"accuracy": {"preset": "high", "subsampling": 6, "dtype": "float32"}}
     s = sc.scene_from_dict(d)
-    assert s.render.accuracy == sc.Accuracy("high", 6, sc.ACCURACY_PRESETS["high"]["psf_oversampling"], "analytic")
+    high = sc.ACCURACY_PRESETS["high"]
+    assert s.render.accuracy == sc.Accuracy("high", 6, high["psf_oversampling"], high["source_mode"])
     assert s.render.dtype == "float32"
     d["render"]["dtype"] = "float64"
     assert error_for(d).setting == "render.accuracy.dtype"

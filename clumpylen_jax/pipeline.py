@@ -1,0 +1,595 @@
+"""From a scene to images on disk: the `clumpylen simulate` job.
+
+`prepare(scene)` makes everything the model needs (clump catalogue, fluxes per
+band, lens, PSFs, the compiled-on-first-use `SceneModel`); `run(prepared)`
+evaluates it; `simulate(scene, out_dir)` does both and writes the outputs of
+SCENE.md. Stochastic parts use the scene's seed only: NumPy's generator for the
+population, `jax.random.key(seed)` for noise; the same seed gives the same files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
+from . import profiles, render, scene as scene_mod
+from .errors import ConfigError
+from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
+
+
+# ------------------------------------------------------------------ progress
+
+
+class _Progress:
+    """A one-line progress display on a terminal; silent otherwise."""
+
+    def __init__(self, enabled: bool, total: int):
+        self.enabled = enabled and sys.stderr.isatty()
+        self.total = max(total, 1)
+        self.done = 0
+        self.timings: dict[str, float] = {}
+
+    def stage(self, name: str):
+        progress = self
+
+        class _Stage:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+                if progress.enabled:
+                    bar = "#" * int(30 * progress.done / progress.total)
+                    sys.stderr.write(f"\r[{bar:<30}] {name:<40}")
+                    sys.stderr.flush()
+
+            def __exit__(self, *exc):
+                progress.timings[name] = round(time.perf_counter() - self.t0, 4)
+                progress.done += 1
+                if progress.enabled and progress.done >= progress.total:
+                    sys.stderr.write("\r" + " " * 75 + "\r")
+                    sys.stderr.flush()
+
+        return _Stage()
+
+
+# ------------------------------------------------------------------ the prepared scene
+
+
+@dataclasses.dataclass
+class Prepared:
+    """Everything a scene needs, made once: see `prepare`."""
+
+    scene: scene_mod.Scene
+    source: Source
+    catalog: object                 # astropy Table of clumps (possibly empty)
+    lens: object                    # lens object or None
+    bands: list                     # model.Band per scene band
+    zeropoints: dict                # filter -> ZP (AB)
+    field_arcsec: Optional[tuple]
+    model: model_mod.SceneModel
+    accuracy: model_mod.Accuracy
+    dtype: object
+    host_masses_msun: dict
+    timings: dict
+
+
+def _cosmology(scene):
+    return cosmo_mod.make_cosmology(scene.cosmology.H0, scene.cosmology.Om0)
+
+
+def _accuracy(scene) -> model_mod.Accuracy:
+    a = scene.render.accuracy
+    base = model_mod.ACCURACY_PRESETS[a.preset]
+    return dataclasses.replace(base, lens_subsampling=a.subsampling,
+                               psf_oversampling=a.psf_oversampling, source_mode=a.source_mode)
+
+
+def build_lens(scene, cosmology=None):
+    """The scene's lens object (None for an unlensed scene)."""
+    L = scene.lens
+    if L is None:
+        return None
+    cosmology = cosmology or _cosmology(scene)
+    if L.model is not None:
+        from .lensing.clusters import builtin_lens
+        return builtin_lens(L.model, scene.z_source, cosmology=cosmology)
+    if L.deflection is not None:
+        from .lensing.fits import load_deflection_maps
+        norm = ("dls_ds" if L.deflection.normalization_z_source is None
+                else {"z_source": L.deflection.normalization_z_source})
+        return load_deflection_maps(L.deflection.x, L.deflection.y,
+                                    lens_center_radec_deg=L.center_radec_deg, z_lens=L.z_lens,
+                                    z_source=scene.z_source, normalization=norm,
+                                    cosmology=cosmology)
+    from .lensing import analytic
+    classes = {"sis": analytic.SIS, "sie": analytic.SIE, "nfw": analytic.NFW,
+               "dpie": analytic.DPIE, "shear": analytic.ExternalShear,
+               "sheet": analytic.MassSheet}
+    lenses = []
+    for comp in L.components:
+        params = {k: v for k, v in comp.params.items() if v is not None}
+        if comp.kind == "dpie" and "sigma0_kms" in params:
+            # E0 = 6π (σ0/c)² D_ls/D_s (Elíasdóttir et al. 2007), in arcsec
+            sigma = params.pop("sigma0_kms")
+            ratio = cosmo_mod.dls_ds(L.z_lens, scene.z_source, cosmology)
+            params["b0_arcsec"] = 6 * math.pi * (sigma / 299792.458) ** 2 * ratio * 206264.806
+        kwargs = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
+        lenses.append(classes[comp.kind](**kwargs))
+    return lenses[0] if len(lenses) == 1 else analytic.LensSum(tuple(lenses))
+
+
+def _f(x, dtype):
+    return jnp.asarray(x, dtype)
+
+
+def _host_pytrees(scene, dtype):
+    """Unit-geometry host pytrees (flux placeholder 1) for positions and extents."""
+    src = scene.source
+    c = _f(src.center_arcsec, dtype)
+    bulge = disk = None
+    if src.bulge is not None:
+        b = src.bulge
+        bulge = Sersic(_f([1.0], dtype), _f(b.re_arcsec, dtype), _f(b.n, dtype), _f(b.q, dtype),
+                       _f(b.pa_rad, dtype), c)
+    if src.disk is not None:
+        d = src.disk
+        arms = tex = None
+        if d.arms is not None:
+            a = d.arms
+            arms = SpiralArms(int(a.count), _f(a.amplitude, dtype), _f(a.winding, dtype),
+                              _f(a.phase_rad, dtype), _f(a.scale_arcsec, dtype),
+                              _f(a.orientation_rad, dtype))
+        if d.texture is not None:
+            t = d.texture
+            perm = jnp.asarray(profiles.perlin_permutation(scene.seed + 7919))
+            tex = Texture(_f(t.amplitude, dtype), _f(t.scale_arcsec, dtype), int(t.octaves), perm)
+        disk = Disk(Sersic(_f([1.0], dtype), _f(d.re_arcsec, dtype), _f(d.n, dtype),
+                           _f(d.q, dtype), _f(d.pa_rad, dtype), c),
+                    _f(d.inclination_rad, dtype), arms, tex)
+    return bulge, disk
+
+
+def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
+    """AB magnitude per band of a host component: given magnitudes first, SPS for the rest."""
+    mags = {}
+    need = [f for f in filters if f not in comp.magnitudes]
+    for f in filters:
+        if f in comp.magnitudes:
+            mags[f] = float(comp.magnitudes[f])
+    if need:
+        if mass_msun is None:
+            raise ConfigError("source component magnitudes", sorted(comp.magnitudes),
+                              f"magnitudes for every band ({', '.join(filters)}) or a mass_msun")
+        if mass_msun <= 0:
+            for f in need:
+                mags[f] = math.inf
+        else:
+            m = photometry.ab_magnitudes(mass_msun, comp.age_myr, filters=need, z=scene.z_source,
+                                         metallicity=comp.metallicity, sfh=comp.sfh.kind,
+                                         sfh_duration_myr=comp.sfh.duration_myr or 0.0,
+                                         cosmology=cosmology)
+            for f, v in zip(need, np.asarray(m)):
+                mags[f] = float(v)
+    return mags
+
+
+def _counts(mag, zp):
+    return 0.0 if not np.isfinite(mag) else float(10 ** (-0.4 * (mag - zp)))
+
+
+def _sample_catalog(scene, bulge, disk, cosmology):
+    """The clump catalogue (astropy Table) and the host masses left after clumps."""
+    from . import population
+    src = scene.source
+    cl = src.clumps
+    masses = {"bulge": src.bulge.mass_msun if src.bulge is not None else None,
+              "disk": src.disk.mass_msun if src.disk is not None else None}
+    if cl is None:
+        return population._make_table({k: [] for k in ()}, {}) if False else None, masses
+    scale = cosmo_mod.arcsec_per_pc(scene.z_source, cosmology)
+    if cl.catalog is not None:
+        table = population.read_clump_catalog(cl.catalog, arcsec_per_pc=scale,
+                                              bands=list(scene.band_names),
+                                              sersic_n_default=cl.sersic_n)
+        return table, masses
+    host_name = cl.host
+    host_tree = disk if host_name == "disk" else bulge
+    host_cfg = src.disk if host_name == "disk" else src.bulge
+    if host_tree is None or host_cfg is None:
+        raise ConfigError("source.clumps.host", host_name, "a component present in the source")
+    if host_cfg.mass_msun is None:
+        raise ConfigError(f"source.{host_name}.mass_msun", None,
+                          "the host's mass (clumps take mass_fraction of it)")
+    if host_name == "disk":
+        mean = render.disk_modulation_mean(host_tree)
+        fn = jax.jit(lambda x, y: render.disk_unit_brightness(host_tree, x, y, mean))
+        geo = host_tree.sersic
+    else:
+        fn = jax.jit(lambda x, y: render.sersic_unit_brightness(x, y, **render._sersic_kw(host_tree)))
+        geo = host_tree
+    radius = float(model_mod._radius_enclosing(0.999, geo.re_arcsec, geo.n))
+    c = np.asarray(geo.center_arcsec, float)
+    bbox = ((c[0] - radius, c[0] + radius), (c[1] - radius, c[1] + radius))
+    rng = np.random.default_rng(scene.seed)
+    config = population.ClumpConfig(
+        cmf_slope=cl.cmf.slope, cmf_m_cut_msun=cl.cmf.m_cut_msun, cmf_delta=cl.cmf.delta,
+        cmf_gamma=cl.cmf.gamma, cmf_m_min_msun=cl.cmf.m_min_msun, cmf_m_max_msun=cl.cmf.m_max_msun,
+        size_scatter_ln=cl.size.scatter_ln, age_slope=cl.ages.slope, age_min_myr=cl.ages.min_myr,
+        age_max_myr=cl.ages.max_myr, q_range=tuple(cl.q_range), sersic_n=cl.sersic_n)
+    table = population.sample_clumps(
+        rng, host_mass_msun=float(host_cfg.mass_msun), mass_fraction=float(cl.mass_fraction),
+        host_brightness=lambda x, y: np.asarray(fn(jnp.asarray(x), jnp.asarray(y))),
+        bbox_arcsec=bbox, arcsec_per_pc=scale, config=config)
+    masses[host_name] = float(table.meta["host_mass_remaining_msun"])
+    return table, masses
+
+
+def _clump_mags(scene, table, filters, cosmology):
+    """[N, B] AB magnitudes of the clumps: catalogue columns first, SPS for the rest."""
+    cl = scene.source.clumps
+    n = len(table)
+    mags = np.full((n, len(filters)), np.nan)
+    for k, f in enumerate(filters):
+        col = f"mag_{f}"
+        if col in table.colnames:
+            mags[:, k] = np.asarray(table[col], float)
+    missing = [k for k in range(len(filters)) if np.any(np.isnan(mags[:, k]))]
+    if missing and n:
+        need = [filters[k] for k in missing]
+        m = photometry.ab_magnitudes(np.asarray(table["mass_msun"], float),
+                                     np.asarray(table["age_myr"], float), filters=need,
+                                     z=scene.z_source, metallicity=cl.metallicity, sfh=cl.sfh.kind,
+                                     sfh_duration_myr=cl.sfh.duration_myr or 0.0,
+                                     cosmology=cosmology)
+        m = np.asarray(m)
+        for j, k in enumerate(missing):
+            fill = np.isnan(mags[:, k])
+            mags[fill, k] = m[fill, j]
+    return mags
+
+
+def _bands(scene, accuracy):
+    """model.Band per scene band, with PSFs resolved; and the zero points."""
+    from .psf import psf_for_band
+    out, zps = [], {}
+    for i, b in enumerate(scene.bands):
+        if b.pixel_arcsec is None or b.zeropoint_ab is None:
+            raise ConfigError(f"bands[{i}]", b.filter, "a band with pixel_arcsec and zeropoint_ab")
+        zps[b.filter] = float(b.zeropoint_ab)
+        psf = psf_for_band(b.psf, instrument=b.instrument, filter_name=b.filter,
+                           detector_pixel_arcsec=b.pixel_arcsec,
+                           psf_pixel_arcsec=b.psf_pixel_arcsec,
+                           oversampling=max(accuracy.psf_oversampling, 2) * 2 - 1,
+                           base_dir=scene.base_dir)
+        out.append(model_mod.Band(
+            b.filter, float(b.pixel_arcsec), float(b.exptime_s or 1.0), float(b.sky_counts_per_s),
+            None if psf is None else psf.array, None if psf is None else psf.pixel_arcsec,
+            bool(b.psf_effective or (psf is not None and psf.effective))))
+    return out, zps
+
+
+def _field(scene, lens, source, accuracy):
+    """The lens-plane field: the scene's, or where the source lands (lensed scenes)."""
+    f = scene.render.field_arcsec
+    if f is not None:
+        return (tuple(f.x), tuple(f.y))
+    if lens is None:
+        return None
+    from .lensing.images import lens_plane_region
+    center, radius = model_mod.source_extent(source, accuracy.source_flux_fraction,
+                                             accuracy.stamp_flux_fraction)
+    reach = 60.0 + abs(center[0]) + abs(center[1])
+    return lens_plane_region(lens, center, radius,
+                             search_field=((-reach, reach), (-reach, reach)),
+                             pixel_arcsec=0.25, margin_arcsec=0.5)
+
+
+def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> Prepared:
+    """Population, photometry, lens, PSFs and the model of a scene (no rendering yet)."""
+    progress = progress or _Progress(False, 1)
+    cosmology = _cosmology(scene)
+    accuracy = _accuracy(scene)
+    dtype = jnp.float32 if scene.render.dtype == "float32" else jnp.float64
+    filters = list(scene.band_names)
+
+    with progress.stage("bands and PSFs"):
+        bands, zps = _bands(scene, accuracy)
+    bulge_t, disk_t = _host_pytrees(scene, jnp.float64)
+    with progress.stage("population"):
+        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology)
+    with progress.stage("photometry"):
+        src = scene.source
+        bulge = disk = clumps = None
+        if src.bulge is not None:
+            mags = _component_mags(src.bulge, host_masses["bulge"], filters, zps, scene, cosmology)
+            flux = [_counts(mags[f], zps[f]) for f in filters]
+            bulge = dataclasses.replace(bulge_t, flux=jnp.asarray(flux, jnp.float64))
+        if src.disk is not None:
+            mags = _component_mags(src.disk, host_masses["disk"], filters, zps, scene, cosmology)
+            flux = [_counts(mags[f], zps[f]) for f in filters]
+            disk = dataclasses.replace(
+                disk_t, sersic=dataclasses.replace(disk_t.sersic, flux=jnp.asarray(flux, jnp.float64)))
+        if table is not None and len(table):
+            cm = _clump_mags(scene, table, filters, cosmology)
+            for k, f in enumerate(filters):
+                table[f"mag_{f}"] = cm[:, k]
+            flux = np.where(np.isfinite(cm), 10 ** (-0.4 * (cm - np.array([zps[f] for f in filters]))),
+                            0.0)
+            clumps = Clumps(
+                jnp.asarray(np.stack([table["beta1_arcsec"], table["beta2_arcsec"]], axis=1), float),
+                jnp.asarray(flux), jnp.asarray(np.asarray(table["re_arcsec"], float)),
+                jnp.asarray(np.asarray(table["sersic_n"], float)),
+                jnp.asarray(np.asarray(table["q"], float)),
+                jnp.asarray(np.asarray(table["pa_rad"], float)))
+        source = Source(bulge, disk, clumps).astype(dtype)
+    with progress.stage("lens"):
+        lens = build_lens(scene, cosmology)
+        field = _field(scene, lens, source, accuracy)
+    with progress.stage("model (ray tracing)" if lens is not None else "model"):
+        model = model_mod.build_model(
+            source, bands, lens=lens, field_arcsec=field,
+            lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
+            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
+    return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
+                    host_masses, progress.timings)
+
+
+# ------------------------------------------------------------------ running and writing
+
+
+def _jit_call(model, method: str, *args):
+    """Compile and call a SceneModel method (the model's arrays are traced, not hashed)."""
+    import equinox as eqx
+    return eqx.filter_jit(lambda m, *a: getattr(m, method)(*a))(model, *args)
+
+
+def _wcs_for(grid, scene, lensed: bool):
+    """TAN WCS of a grid: reference = lens centre (lensed) or the source centre (unlensed)."""
+    if lensed and scene.lens.center_radec_deg is not None:
+        ref = scene.lens.center_radec_deg
+        offset = (0.0, 0.0)
+    else:
+        ref = (scene.lens.center_radec_deg if scene.lens is not None and
+               scene.lens.center_radec_deg is not None else (0.0, 0.0))
+        offset = (0.0, 0.0)
+    return io.make_wcs(ref, grid.pixel_arcsec, grid.shape,
+                       (grid.x0_arcsec - offset[0], grid.y0_arcsec - offset[1]))
+
+
+def _header(scene, band, zp, seed):
+    return {"TELESCOP": band.telescope, "INSTRUME": band.camera, "FILTER": band.filter,
+            "EXPTIME": float(band.exptime_s or 0.0), "ZP_AB": float(zp),
+            "PIXSCALE": float(band.pixel_arcsec), "SKYLEVEL": float(band.sky_counts_per_s),
+            "SEED": int(seed), "BUNIT": "counts/s"}
+
+
+def _rgb_channels(images, grids, triple):
+    """Three images on the first one's grid, as surface brightness (rebinned where needed)."""
+    from .pixels import rebin, rebin_operators
+    g0 = grids[triple[0]]
+    out = []
+    for f in triple:
+        img, g = images[f], grids[f]
+        if g != g0:
+            wy, wx = rebin_operators(g, g0)
+            img = np.asarray(rebin(jnp.asarray(img), wy, wx))
+        out.append(np.asarray(img) / g0.pixel_arcsec**2)
+    return out
+
+
+def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True) -> dict:
+    """Simulate `scene` (a Scene, a built-in name or a path) and write SCENE.md's outputs in out_dir.
+
+    Returns the summary (also written to summary.json).
+    """
+    if not isinstance(scene, scene_mod.Scene):
+        scene = scene_mod.load_scene(scene)
+    scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
+    out = Path(out_dir)
+    n_stages = 6 + len(scene.bands) + 3
+    prog = _Progress(progress, n_stages)
+    t_start = time.perf_counter()
+    prep = prepare(scene, progress=prog)
+    model = prep.model
+    lensed = model.lensed
+    source = prep.source
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bands").mkdir(exist_ok=True)
+    stages_ran = ["population" if scene.source.clumps is not None else None, "photometry",
+                  "lensing" if lensed else None]
+
+    with prog.stage("render (compile + run)"):
+        key = jax.random.key(scene.seed)
+        if scene.output.noise:
+            noisy, clean, var = _jit_call(model, 'observe', source, key)
+        else:
+            clean = _jit_call(model, 'noiseless', source)
+            noisy, var = clean, model.variances(clean)
+        noisy = [np.asarray(x) for x in noisy]
+        clean = [np.asarray(x) for x in clean]
+        var = [np.asarray(x) for x in var]
+
+    unlensed = [None] * len(scene.bands)
+    unl_model = None
+    if scene.output.unlensed:
+        with prog.stage("unlensed images"):
+            unl_model = model_mod.build_model(source, prep.bands, lens=None,
+                                              accuracy=prep.accuracy, dtype=prep.dtype)
+            unlensed = [np.asarray(x) for x in _jit_call(unl_model, 'band_images', source)]
+
+    summary_bands = {}
+    grids = {}
+    for k, b in enumerate(scene.bands):
+        with prog.stage(f"write {b.filter}"):
+            lay = model.layouts[k]
+            grids[b.filter] = lay.grid
+            wcs = _wcs_for(lay.grid, scene, lensed)
+            unl_wcs = None
+            if unlensed[k] is not None:
+                unl_wcs = _wcs_for(unl_model.layouts[k].grid, scene, False)
+            header = _header(scene, b, prep.zeropoints[b.filter], scene.seed)
+            if b.exptime_s is None:
+                header["NOISEMOD"] = "none: no exposure time given"
+            io.write_band_fits(out / "bands" / f"{b.filter}.fits", noisy[k], noiseless=clean[k],
+                               variance=var[k], unlensed=unlensed[k], header=header, wcs=wcs,
+                               unlensed_wcs=unl_wcs)
+            src_counts = float(np.sum(clean[k]) - lay.sky_counts_per_s * clean[k].size)
+            summary_bands[b.filter] = {
+                "total_counts_per_s": src_counts,
+                "total_counts": src_counts * float(b.exptime_s or 0.0),
+                "shape": list(clean[k].shape), "pixel_arcsec": b.pixel_arcsec,
+                "zeropoint_ab": prep.zeropoints[b.filter],
+                "psf": b.psf, "psf_effective": prep.bands[k].psf_effective,
+            }
+
+    with prog.stage("colour composites"):
+        shown = noisy if scene.output.noise else clean
+        images = {b.filter: shown[k] - model.layouts[k].sky_counts_per_s
+                  for k, b in enumerate(scene.bands)}
+        for triple in scene.output.rgb:
+            r, g, bb = _rgb_channels(images, grids, triple)
+            io.save_rgb_png(out / f"rgb_{'-'.join(triple)}.png", r, g, bb)
+
+    with prog.stage("high-resolution images"):
+        hr_info = _write_hr(prep, out) if scene.output.hr else None
+
+    with prog.stage("catalogue"):
+        table = prep.catalog
+        if table is not None:
+            if len(table) and lensed and model.clump_grid is not None:
+                table["magnification"] = np.asarray(_jit_call(model, 'clump_magnifications', source))
+            else:
+                table["magnification"] = np.full(len(table), 1.0 if not lensed else np.nan)
+            io.write_catalog(out / "catalog.ecsv", table)
+
+    summary = {
+        "scene": scene_mod.resolved_dict(scene),
+        "seed": scene.seed,
+        "version": __version__,
+        "bands": summary_bands,
+        "band_total_counts": {f: v["total_counts"] for f, v in summary_bands.items()},
+        "n_clumps": 0 if table is None else len(table),
+        "host_masses_msun": prep.host_masses_msun,
+        "field_arcsec": prep.field_arcsec,
+        "traced_pixels": None if not lensed else int(model.traced_rows.shape[0]),
+        "hr_grid": None if not lensed else dataclasses.asdict(model.hr_grid),
+        "hr": hr_info,
+        "stages": [s for s in stages_ran if s] +
+                  [f"psf:{b.name}" for b in prep.bands if b.psf is not None] +
+                  (["noise"] if scene.output.noise else []) +
+                  (["unlensed"] if scene.output.unlensed else []) +
+                  [f"rgb:{'-'.join(t)}" for t in scene.output.rgb] +
+                  (["hr"] if scene.output.hr else []),
+        "timings_s": dict(prog.timings, total=round(time.perf_counter() - t_start, 3)),
+        "accuracy": dataclasses.asdict(prep.accuracy),
+    }
+    io.write_json(out / "summary.json", summary)
+    return summary
+
+
+def _write_hr(prep: Prepared, out: Path):
+    """High-resolution lensed and unlensed images: monochromatic at hr_rgb_um, else per band."""
+    scene = prep.scene
+    source = prep.source
+    model = prep.model
+    hr_dir = out / "hr"
+    hr_dir.mkdir(exist_ok=True)
+    waves = scene.output.hr_rgb_um
+    if waves is not None:
+        mono = _monochromatic_source(prep, waves)
+        names = [f"{w:g}um" for w in waves]
+        unit = "uJy/pixel"
+    else:
+        mono, names, unit = source, list(scene.band_names), "counts/s/pixel"
+    center, radius = model_mod.source_extent(mono, prep.accuracy.source_flux_fraction,
+                                             prep.accuracy.stamp_flux_fraction)
+    from .pixels import Grid
+    pix = max(scene.render.source_pixel_arcsec, 2 * radius / 2047)
+    sgrid = Grid.centered(center, radius, pix)
+    stamp = 0
+    if mono.clumps is not None and mono.clumps.count > 0:
+        stamp = render.stamp_size(float(np.max(mono.clumps.re_arcsec)),
+                                  float(np.max(mono.clumps.n)), sgrid.pixel_arcsec,
+                                  flux_fraction=prep.accuracy.stamp_flux_fraction)
+    unl = np.asarray(jax.jit(lambda s: _source_plane_images(s, sgrid, prep.accuracy, stamp))(mono))
+    lensed = None
+    if model.lensed:
+        lensed = np.asarray(_jit_call(model, 'lens_plane', mono))
+    for k, name in enumerate(names):
+        hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
+        io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),
+                            wcs=_wcs_for(sgrid, scene, False), header=hdr)
+        if lensed is not None:
+            hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
+            io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
+                                wcs=_wcs_for(model.hr_grid, scene, True), header=hdr)
+    if len(names) >= 3:
+        io.save_rgb_png(hr_dir / "rgb_unlensed.png", *[unl[k] for k in range(3)])
+        if lensed is not None:
+            io.save_rgb_png(hr_dir / "rgb_lensed.png", *[lensed[k] for k in range(3)])
+    return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
+
+
+def _source_plane_images(source: Source, grid, accuracy, stamp: int):
+    """Pixel-integrated source-plane images [B, ny, nx] (counts or μJy per pixel)."""
+    nb = None
+    img = 0.0
+    if source.bulge is not None:
+        nb = source.bulge.flux.shape[0]
+        img = img + source.bulge.flux[:, None, None] * render.sersic_image(
+            source.bulge, grid, order=accuracy.source_order, core=accuracy.exact_core)[None]
+    if source.disk is not None:
+        nb = source.disk.sersic.flux.shape[0]
+        img = img + source.disk.sersic.flux[:, None, None] * render.disk_image(
+            source.disk, grid, order=accuracy.source_order, core=accuracy.exact_core)[None]
+    cl = source.clumps
+    if cl is not None and cl.count > 0:
+        stamps, i0, j0 = render.clump_stamps(cl, grid, stamp, order=accuracy.source_order,
+                                             core=accuracy.exact_core)
+        img = img + render.scatter_stamps(stamps, i0, j0, cl.flux, grid)
+    return img
+
+
+def _monochromatic_source(prep: Prepared, waves_um):
+    """The source with fluxes replaced by f_ν (μJy) at the given observed wavelengths."""
+    scene = prep.scene
+    cosmology = _cosmology(scene)
+    src = scene.source
+    s = prep.source
+
+    def mono(mass, age, metallicity, sfh):
+        if mass is None or (np.ndim(mass) == 0 and mass <= 0):
+            return np.zeros(np.shape(mass) + (len(waves_um),)) if mass is not None else \
+                np.zeros(len(waves_um))
+        return np.asarray(photometry.monochromatic_fnu(
+            mass, age, wavelength_obs_um=list(waves_um), z=scene.z_source,
+            metallicity=metallicity, sfh=sfh.kind, sfh_duration_myr=sfh.duration_myr or 0.0,
+            cosmology=cosmology))
+
+    dt = prep.dtype
+    bulge = disk = clumps = None
+    if s.bulge is not None:
+        f = mono(prep.host_masses_msun["bulge"], src.bulge.age_myr, src.bulge.metallicity,
+                 src.bulge.sfh)
+        bulge = dataclasses.replace(s.bulge, flux=jnp.asarray(f, dt))
+    if s.disk is not None:
+        f = mono(prep.host_masses_msun["disk"], src.disk.age_myr, src.disk.metallicity,
+                 src.disk.sfh)
+        disk = dataclasses.replace(s.disk, sersic=dataclasses.replace(s.disk.sersic,
+                                                                      flux=jnp.asarray(f, dt)))
+    if s.clumps is not None:
+        t = prep.catalog
+        mass = np.asarray(t["mass_msun"], float)
+        if np.all(np.isfinite(mass)):
+            f = mono(mass, np.asarray(t["age_myr"], float), src.clumps.metallicity, src.clumps.sfh)
+        else:
+            f = np.zeros((len(t), len(waves_um)))
+        clumps = dataclasses.replace(s.clumps, flux=jnp.asarray(f, dt))
+    return Source(bulge, disk, clumps)
