@@ -25,21 +25,28 @@ class Grid:
     nx: int
     ny: int
 
+    def __post_init__(self):
+        # plain Python numbers: numpy scalars would promote float32 computations to float64
+        for name in ("x0_arcsec", "y0_arcsec", "pixel_arcsec"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        for name in ("nx", "ny"):
+            object.__setattr__(self, name, int(getattr(self, name)))
+
     @classmethod
     def covering(cls, x_range, y_range, pixel_arcsec):
         """The grid whose lower-left corner is (x_range[0], y_range[0]) and which covers the ranges."""
         nx = max(1, int(math.ceil((x_range[1] - x_range[0]) / pixel_arcsec - 1e-9)))
         ny = max(1, int(math.ceil((y_range[1] - y_range[0]) / pixel_arcsec - 1e-9)))
-        return cls(x_range[0] + pixel_arcsec / 2, y_range[0] + pixel_arcsec / 2,
-                   pixel_arcsec, nx, ny)
+        return cls(float(x_range[0] + pixel_arcsec / 2), float(y_range[0] + pixel_arcsec / 2),
+                   float(pixel_arcsec), nx, ny)  # Python floats: numpy scalars would promote float32
 
     @classmethod
     def centered(cls, center, half_size_arcsec, pixel_arcsec):
         """An odd-sized grid whose central pixel is centred on `center` (arcsec)."""
         half = int(math.ceil(half_size_arcsec / pixel_arcsec - 0.5 - 1e-9))
         n = 2 * max(half, 0) + 1
-        return cls(center[0] - half * pixel_arcsec, center[1] - half * pixel_arcsec,
-                   pixel_arcsec, n, n)
+        return cls(float(center[0] - half * pixel_arcsec), float(center[1] - half * pixel_arcsec),
+                   float(pixel_arcsec), n, n)
 
     @property
     def shape(self):

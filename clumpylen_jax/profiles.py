@@ -11,6 +11,8 @@ exactly at a profile centre, or q = 1, gives finite values and gradients.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -171,10 +173,18 @@ def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights, uppe
     d = jnp.abs(ax * nx_ + ay * ny_)  # the line's distance from the origin
     phi = phi_a[..., None] + dphi[..., None] * nodes
     cosang = jnp.abs(jnp.cos(phi) * nx_[..., None] + jnp.sin(phi) * ny_[..., None])
-    cosang = jnp.maximum(cosang, jnp.finfo(cosang.dtype).tiny)
+    # degenerate edges (through the centre) hold no light; keep their rays out of the division
+    cosang = jnp.where(degenerate[..., None], 1.0, jnp.maximum(cosang, jnp.finfo(cosang.dtype).tiny))
     radius = jnp.where(degenerate[..., None], 0.0, d[..., None] / cosang)
     x = b * safe_pow(radius / re, 1.0 / n)
-    g = jax.scipy.special.gammaincc(2 * n, x) if upper else gammainc(2 * n, x)
+    # P(a, 0) = 0 and Q(a, 0) = 1, but the derivatives of the incomplete gamma
+    # function at x = 0 are infinite or NaN for a ≤ 1: keep x = 0 out of them.
+    positive = x > 0
+    xs = jnp.where(positive, x, 1.0)
+    if upper:
+        g = jnp.where(positive, jax.scipy.special.gammaincc(2 * n, xs), 1.0)
+    else:
+        g = jnp.where(positive, gammainc(2 * n, xs), 0.0)
     return dphi * jnp.sum(g * weights, axis=-1)
 
 
@@ -275,7 +285,7 @@ def perlin2d(x, y, perm):
     v = _fade(fy)
     nx0 = n00 + u * (n10 - n00)
     nx1 = n01 + u * (n11 - n01)
-    return (nx0 + v * (nx1 - nx0)) * np.sqrt(2.0)
+    return (nx0 + v * (nx1 - nx0)) * math.sqrt(2.0)
 
 
 def perlin_fbm(x, y, perm, octaves: int, persistence: float = 0.5):

@@ -1,0 +1,307 @@
+"""The composed model: lensing, pixels, PSF, noise, stages and gradients."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clumpylen_jax  # noqa: F401
+from clumpylen_jax import convolve, noise, profiles
+from clumpylen_jax.errors import ConfigError
+from clumpylen_jax.lensing.analytic import SIS
+from clumpylen_jax.lensing.grid import DeflectionGrid
+from clumpylen_jax.model import Accuracy, Band, build_model
+from clumpylen_jax.pixels import Grid, overlap_matrix, rebin, rebin_operators
+from clumpylen_jax.source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
+
+f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
+
+
+def gaussian_psf(size, sigma_pix):
+    y, x = np.mgrid[:size, :size] - (size - 1) / 2
+    return np.exp(-(x**2 + y**2) / (2 * sigma_pix**2))
+
+
+def clump(beta, flux, re=0.002):
+    return Clumps(f64([beta]), f64([[flux]]), f64([re]), f64([0.5]), f64([1.0]), f64([0.0]))
+
+
+# ------------------------------------------------------------------ lensing
+
+
+def test_sis_image_positions_and_flux_ratio():
+    """A compact source behind an SIS: images at β ± θ_E, flux ratio |θ+|/|θ−| (1 %)."""
+    beta, theta_e = 0.3, 1.0
+    src = Source(clumps=clump([beta, 0.0], 100.0, re=0.001))
+    lens = SIS(f64(theta_e), f64([0.0, 0.0]))
+    m = build_model(src, [Band("X", 0.02, 1.0)], lens=lens, field_arcsec=((-2, 2), (-1, 1)),
+                    lens_pixel_arcsec=0.002, accuracy=Accuracy(source_mode="analytic"))
+    img = np.asarray(eqx.filter_jit(lambda m, s: m.lens_plane(s))(m, src))[0]
+    g = m.hr_grid
+    x = g.x_centers()[None, :]
+    y = g.y_centers()[:, None]
+    plus, minus = img * (x > 0), img * (x < 0)
+    xp = (plus * x).sum() / plus.sum()
+    xm = (minus * x).sum() / minus.sum()
+    assert abs(xp - (beta + theta_e)) < 0.01 * (beta + theta_e)
+    assert abs(xm - (beta - theta_e)) < 0.01 * abs(beta - theta_e)
+    assert abs(float((plus * y).sum() / plus.sum())) < 0.01
+    ratio = plus.sum() / minus.sum()
+    expected = (beta + theta_e) / (theta_e - beta)
+    assert abs(ratio / expected - 1) < 0.01
+    # total magnification of a point source behind an SIS: 2 θ_E / β
+    assert abs(img.sum() / 100.0 / (2 * theta_e / beta) - 1) < 0.01
+
+
+def test_grid_and_analytic_clump_modes_agree():
+    src = Source(bulge=Sersic(f64([20.0]), f64(0.03), f64(1.0), f64(0.8), f64(0.2), f64([0.2, 0.05])),
+                 clumps=Clumps(f64([[0.21, 0.06], [0.18, 0.03]]), f64([[5.0], [3.0]]),
+                               f64([0.004, 0.006]), f64([0.5, 0.5]), f64([0.7, 0.5]), f64([0.3, 1.2])))
+    lens = SIS(f64(1.0), f64([0.0, 0.0]))
+    kw = dict(lens=lens, field_arcsec=((-1.5, 1.5), (-1.5, 1.5)), lens_pixel_arcsec=0.005,
+              source_pixel_arcsec=0.0004)
+    bands = [Band("X", 0.03, 1.0)]
+    a = build_model(src, bands, accuracy=Accuracy(source_mode="analytic"), **kw)
+    g = build_model(src, bands, accuracy=Accuracy(source_mode="grid"), **kw)
+    ia = np.asarray(eqx.filter_jit(lambda m, s: m.band_images(s))(a, src)[0])
+    ig = np.asarray(eqx.filter_jit(lambda m, s: m.band_images(s))(g, src)[0])
+    assert abs(ig.sum() / ia.sum() - 1) < 2e-3
+    assert np.max(np.abs(ig - ia)) < 0.02 * ia.max()
+
+
+def test_deflection_map_matches_analytic_lens_and_clamps_outside():
+    """An in-memory map of an SIS traces like the SIS; rays outside get the edge value."""
+    lens = SIS(f64(1.0), f64([0.0, 0.0]))
+    p = 0.01
+    ax = np.arange(-300, 301) * p
+    X, Y = np.meshgrid(ax, ax)
+    a1, a2 = lens.deflection(f64(X), f64(Y))
+    grid = DeflectionGrid(a1, a2, f64([ax[0], ax[0]]), p)
+    t1 = f64([1.234, -0.711, 2.5])
+    t2 = f64([0.456, 0.3, -1.7])
+    g1, g2 = grid.deflection(t1, t2)
+    e1, e2 = lens.deflection(t1, t2)
+    assert np.allclose(g1, e1, atol=2e-4) and np.allclose(g2, e2, atol=2e-4)
+    o1, o2 = grid.deflection(f64([10.0]), f64([0.0]))
+    c1, c2 = grid.deflection(f64([3.0]), f64([0.0]))
+    assert float(o1[0]) == float(c1[0]) and float(o2[0]) == float(c2[0])
+    g = jax.grad(lambda t: sum(grid.deflection(t, t * 0.3)[0]))(f64([10.0, 0.2]))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_only_traced_pixels_are_computed():
+    src = Source(bulge=Sersic(f64([1.0]), f64(0.02), f64(1.0), f64(1.0), f64(0.0), f64([0.3, 0.0])))
+    lens = SIS(f64(1.0), f64([0.0, 0.0]))
+    m = build_model(src, [Band("X", 0.05, 1.0)], lens=lens, field_arcsec=((-2, 2), (-2, 2)),
+                    lens_pixel_arcsec=0.01)
+    n_field = m.hr_grid.nx * m.hr_grid.ny
+    assert m.traced_rows.shape[0] < 0.2 * n_field  # an extended ring, not the whole field
+
+
+# ------------------------------------------------------------------ pixels and PSF
+
+
+def test_rebinning_conserves_flux_for_non_integer_ratios():
+    rng = np.random.default_rng(0)
+    src = Grid(-1.0, -1.0, 0.0025, 800, 800)
+    dst = Grid.covering(src.x_range, src.y_range, 0.031)
+    img = rng.random(src.shape)
+    wy, wx = rebin_operators(src, dst)
+    out = np.asarray(rebin(jnp.asarray(img), wy, wx))
+    assert abs(out.sum() / img.sum() - 1) < 1e-12
+    w = overlap_matrix([0, 1, 2, 3], [0, 1.5, 3])
+    assert np.allclose(w, [[1, 0.5, 0], [0, 0.5, 1]])
+
+
+@pytest.mark.parametrize("size", [21, 22])
+def test_psf_convolution_conserves_flux_and_centres_a_point(size):
+    from clumpylen_jax.psf import PSF, resample_psf
+    psf = PSF(gaussian_psf(size, 2.0), 0.01, False)
+    kernel = resample_psf(psf, 0.01)
+    assert kernel.shape[0] % 2 == 1
+    img = np.zeros((61, 61))
+    img[30, 30] = 1.0
+    ft = convolve.kernel_rfft(kernel, img.shape)
+    out = np.asarray(convolve.fft_convolve(jnp.asarray(img), ft, kernel.shape))
+    assert abs(out.sum() - 1) < 1e-6
+    y, x = np.mgrid[:61, :61]
+    assert abs((out * x).sum() - 30) < 1e-6 and abs((out * y).sum() - 30) < 1e-6
+    # no wrap-around: a point at the edge loses flux, it does not appear on the other side
+    img = np.zeros((61, 61))
+    img[30, 0] = 1.0
+    out = np.asarray(convolve.fft_convolve(jnp.asarray(img), ft, kernel.shape))
+    assert out[:, -5:].max() < 1e-12 and out.sum() < 0.99
+
+
+def test_model_psf_band_conserves_flux_and_effective_psf_is_not_double_counted():
+    src = Source(bulge=Sersic(f64([50.0]), f64(0.05), f64(1.0), f64(1.0), f64(0.0), f64([0.0, 0.0])))
+    psf = gaussian_psf(41, 4.0)  # sampled at 0.01": an optical PSF of σ = 0.04"
+    bands = [Band("none", 0.03, 1.0), Band("optical", 0.03, 1.0, 0.0, psf, 0.01, False)]
+    m = build_model(src, bands, field_arcsec=((-1.5, 1.5), (-1.5, 1.5)))
+    none, opt = (np.asarray(x) for x in eqx.filter_jit(lambda m, s: m.band_images(s))(m, src))
+    assert abs(opt.sum() / none.sum() - 1) < 1e-5
+    # the same PSF declared effective must not be integrated over the pixel again:
+    # its image is narrower than the optical one (which gains the pixel response)
+    eff = build_model(src, [Band("eff", 0.03, 1.0, 0.0, psf, 0.01, True)],
+                      field_arcsec=((-1.5, 1.5), (-1.5, 1.5)))
+    e = np.asarray(eqx.filter_jit(lambda m, s: m.band_images(s))(eff, src)[0])
+    assert abs(e.sum() / none.sum() - 1) < 1e-3
+    assert e.max() > opt.max()
+
+
+def test_invalid_psf_and_parameters_raise_before_computing():
+    good = Sersic(f64([1.0]), f64(0.1), f64(1.0), f64(1.0), f64(0.0), f64([0.0, 0.0]))
+    bad_psf = gaussian_psf(11, 2.0)
+    bad_psf[3, 3] = np.nan
+    with pytest.raises(ConfigError, match="psf"):
+        build_model(Source(bulge=good), [Band("X", 0.03, 1.0, 0.0, bad_psf, 0.01)])
+    with pytest.raises(ConfigError, match="positive sum"):
+        build_model(Source(bulge=good), [Band("X", 0.03, 1.0, 0.0, -gaussian_psf(11, 2.0), 0.01)])
+    cases = {"flux": f64([-1.0]), "re_arcsec": f64(0.0), "q": f64(1.5), "n": f64(12.0)}
+    for field, value in cases.items():
+        bad = eqx.tree_at(lambda s: getattr(s, field), good, value)
+        with pytest.raises(ConfigError, match=f"source.bulge.{field}"):
+            build_model(Source(bulge=bad), [Band("X", 0.03, 1.0)])
+    with pytest.raises(ConfigError, match="shape"):
+        DeflectionGrid(jnp.zeros((5, 5)), jnp.zeros((5, 6)), f64([0.0, 0.0]), 0.1)
+
+
+# ------------------------------------------------------------------ noise
+
+
+def test_noise_mean_and_variance():
+    img = jnp.full((200, 200), 2.5)
+    t = 40.0
+    draws = noise.add_photon_noise(jax.random.key(1), img, t)
+    assert abs(float(draws.mean()) - 2.5) < 4 * np.sqrt(2.5 / t / img.size)
+    assert abs(float(draws.var()) / (2.5 / t) - 1) < 0.03
+    var = noise.variance_map(img, t)
+    assert np.allclose(var, 2.5 / t)
+    big = jnp.full((200, 200), 1e6)
+    g = noise.add_photon_noise(jax.random.key(2), big, 1.0, gaussian_above_counts=1e4)
+    assert abs(float(g.var()) / 1e6 - 1) < 0.03
+    again = noise.add_photon_noise(jax.random.key(1), img, t)
+    assert np.array_equal(np.asarray(draws), np.asarray(again))
+
+
+# ------------------------------------------------------------------ stages in the compiled model
+
+
+def _primitives(fn, *args):
+    jaxpr = jax.make_jaxpr(fn)(*args)
+    names = set()
+
+    def walk(jp):
+        for eqn in jp.eqns:
+            names.add(eqn.primitive.name)
+            for p in eqn.params.values():
+                for sub in (p if isinstance(p, (list, tuple)) else [p]):
+                    if hasattr(sub, "jaxpr"):
+                        walk(sub.jaxpr if hasattr(sub.jaxpr, "eqns") else sub.jaxpr.jaxpr)
+                    elif hasattr(sub, "eqns"):
+                        walk(sub)
+
+    walk(jaxpr.jaxpr)
+    return names
+
+
+def test_stages_not_called_for_are_absent_from_the_computation():
+    src = Source(bulge=Sersic(f64([5.0]), f64(0.05), f64(2.0), f64(0.8), f64(0.1), f64([0.3, 0.0])))
+    psf = gaussian_psf(21, 2.0)
+    plain = build_model(src, [Band("X", 0.05, 100.0, 0.1)], field_arcsec=((-1, 1), (-1, 1)))
+    with_psf = build_model(src, [Band("X", 0.05, 100.0, 0.1, psf, 0.0167)],
+                           field_arcsec=((-1, 1), (-1, 1)))
+
+    calls = []
+
+    class SpyLens(eqx.Module):
+        inner: SIS
+
+        def deflection(self, t1, t2):
+            calls.append(1)
+            return self.inner.deflection(t1, t2)
+
+    lensed = build_model(src, [Band("X", 0.05, 100.0, 0.1)], lens=SpyLens(SIS(f64(1.0), f64([0, 0]))),
+                         field_arcsec=((-2, 2), (-2, 2)), lens_pixel_arcsec=0.01)
+    assert calls and plain.beta1 is None and not plain.lensed
+    key = jax.random.key(0)
+    p_plain = _primitives(lambda s: plain.noiseless(s), src)
+    p_psf = _primitives(lambda s: with_psf.noiseless(s), src)
+    p_lens = _primitives(lambda s: lensed.noiseless(s), src)
+    p_noise = _primitives(lambda s, k: plain.observe(s, k), src, key)
+    assert "fft" not in p_plain and "fft" in p_psf
+    assert not any("random" in n or "threefry" in n for n in p_plain | p_psf | p_lens)
+    assert any("random" in n or "threefry" in n for n in p_noise)
+    # ray-traced values are scattered into the lens plane only when there is a lens
+    assert "scatter" not in p_plain and "scatter" in p_lens
+
+
+# ------------------------------------------------------------------ gradients
+
+
+def _full_source():
+    perm = jnp.asarray(profiles.perlin_permutation(5))
+    bulge = Sersic(f64([8.0, 5.0]), f64(0.03), f64(3.0), f64(0.9), f64(0.3), f64([0.25, 0.02]))
+    disk = Disk(Sersic(f64([20.0, 25.0]), f64(0.08), f64(1.0), f64(0.8), f64(0.5), f64([0.25, 0.02])),
+                f64(0.4), SpiralArms(2, f64(0.6), f64(4.0), f64(1.0), f64(0.05), f64(0.3)),
+                Texture(f64(0.3), f64(0.04), 2, perm))
+    clumps = Clumps(f64([[0.27, 0.03], [0.22, 0.0]]), f64([[4.0, 3.0], [2.0, 2.5]]),
+                    f64([0.006, 0.01]), f64([0.5, 1.0]), f64([0.7, 0.5]), f64([0.3, 1.2]))
+    return Source(bulge, disk, clumps)
+
+
+def test_gradient_of_chi2_matches_finite_differences_on_a_lensed_psf_scene():
+    src = _full_source()
+    lens = SIS(f64(1.0), f64([0.0, 0.0]))
+    psf = gaussian_psf(15, 1.5)
+    bands = [Band("A", 0.06, 500.0, 0.1, psf, 0.02), Band("B", 0.06, 500.0, 0.1)]
+    m = build_model(src, bands, lens=lens, field_arcsec=((-1.5, 1.5), (-1.5, 1.5)),
+                    lens_pixel_arcsec=0.015, accuracy=Accuracy(source_mode="analytic",
+                                                               lens_subsampling=2, psf_oversampling=1))
+    clean = m.noiseless(src)
+    rng = np.random.default_rng(3)
+    data = tuple(c + 0.05 * rng.standard_normal(c.shape) for c in clean)
+
+    params, static = eqx.partition(src, eqx.is_inexact_array)
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    # drop the texture's hash table (integers) — not a parameter
+    def chi2(leaves):
+        s = eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
+        return sum(jnp.sum((mi - di) ** 2) for mi, di in zip(m.noiseless(s), data))
+
+    f = jax.jit(chi2)
+    grads = jax.jit(jax.grad(chi2))(leaves)
+    checked = 0
+    for k, (leaf, g) in enumerate(zip(leaves, grads)):
+        g = np.asarray(g)
+        assert np.all(np.isfinite(g))
+        flat = np.asarray(leaf).ravel()
+        for i in range(flat.size):
+            h = 1e-6 * max(abs(flat[i]), 1e-3)
+            up = flat.copy(); up[i] += h
+            dn = flat.copy(); dn[i] -= h
+            lu = list(leaves); lu[k] = jnp.asarray(up.reshape(np.shape(leaf)))
+            ld = list(leaves); ld[k] = jnp.asarray(dn.reshape(np.shape(leaf)))
+            fd = (float(f(lu)) - float(f(ld))) / (2 * h)
+            gi = float(g.ravel()[i])
+            scale = max(abs(fd), abs(gi), 1e-6 * float(f(leaves)))
+            assert abs(gi - fd) <= 1e-4 * scale, (k, i, gi, fd)
+            checked += 1
+    assert checked >= 30
+
+
+def test_float32_model_is_finite_and_close_to_float64():
+    src = _full_source()
+    lens = SIS(f64(1.0), f64([0.0, 0.0]))
+    kw = dict(lens=lens, field_arcsec=((-1.5, 1.5), (-1.5, 1.5)), lens_pixel_arcsec=0.01,
+              source_pixel_arcsec=0.001)
+    bands = [Band("A", 0.06, 500.0, 0.1, gaussian_psf(15, 1.5), 0.02), Band("B", 0.06, 500.0, 0.1)]
+    m64 = build_model(src, bands, **kw)
+    src32 = src.astype(jnp.float32)
+    m32 = build_model(src32, bands, dtype=jnp.float32, **kw)
+    i64 = eqx.filter_jit(lambda m, s: m.noiseless(s))(m64, src)
+    i32 = eqx.filter_jit(lambda m, s: m.noiseless(s))(m32, src32)
+    for a, b in zip(i64, i32):
+        assert b.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(b)))
+        assert np.max(np.abs(np.asarray(a) - np.asarray(b))) < 1e-4 * float(jnp.max(a))
