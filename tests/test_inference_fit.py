@@ -49,6 +49,9 @@ def test_map_recovers_bright_clumps_within_fisher_errors(setup):
         pull = (np.asarray(res.x) - truth_x) / np.asarray(unc.err)
         assert np.all(np.abs(pull) < 3.5), dict(zip(param.labels, pull))
         assert np.all(np.asarray(unc.err) > 0)
+    # BFGS on −ln L reaches the same optimum as Levenberg–Marquardt
+    bf = fit_map(model, make_data(model, *observe(TRUE, jax.random.key(2))[::2]), param, method="bfgs")
+    np.testing.assert_allclose(bf.log_posterior, res.log_posterior, atol=1e-4)
 
 
 def test_degenerate_cases_finite_with_large_errors(setup):
