@@ -1,0 +1,377 @@
+"""Hard cases: property-based tests over the edges of the parameter space.
+
+Sérsic n from 0.2 to 10, R_e from 1e-3 to 1e3 pixels, q down to 0.05, centres on
+pixel centres and corners, huge and tiny fluxes, clumps on the SIS caustic and
+rays on its critical curve and centre, rays outside a deflection map, empty and
+very many clumps, zero sky, even-sized PSFs. Each asserts finite images and
+finite gradients in float64 and float32, flux conservation where it must hold,
+and that the dtype of the inputs is the dtype of the outputs.
+
+JAX compiles per shape: every model here is built once at import with fixed
+shapes, and hypothesis varies parameters only (never sizes), so each jitted
+function compiles once per dtype. Profiles (tests/conftest.py): "ci" by
+default, ``HYPOTHESIS_PROFILE=thorough`` for a long run by hand.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+hypothesis = pytest.importorskip("hypothesis")
+from hypothesis import given, note, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import clumpylen_jax  # noqa: E402,F401
+from clumpylen_jax import profiles  # noqa: E402
+from clumpylen_jax.errors import ConfigError  # noqa: E402
+from clumpylen_jax.lensing.analytic import SIS  # noqa: E402
+from clumpylen_jax.lensing.grid import DeflectionGrid  # noqa: E402
+from clumpylen_jax.model import Accuracy, Band, build_model  # noqa: E402
+from clumpylen_jax.source import Clumps, Sersic, Source  # noqa: E402
+
+DTYPES = (jnp.float64, jnp.float32)
+
+
+def _leaves(tree):
+    return [x for x in jax.tree_util.tree_leaves(tree) if hasattr(x, "dtype")]
+
+
+def assert_finite_and_dtype(images, grads, dtype, what=""):
+    dtype = jnp.dtype(dtype)
+    for img in images:
+        assert img.dtype == dtype, f"{what}: image dtype {img.dtype}, inputs {dtype}"
+        assert bool(jnp.all(jnp.isfinite(img))), f"{what}: non-finite image"
+    for g in _leaves(grads):
+        assert g.dtype == dtype, f"{what}: gradient dtype {g.dtype}, inputs {dtype}"
+        assert bool(jnp.all(jnp.isfinite(g))), f"{what}: non-finite gradient"
+
+
+def value_and_grad_fn(model):
+    """jit(value_and_grad) of a weighted sum of the band images, images as aux."""
+
+    def loss(source):
+        imgs = model.band_images(source)
+        total = sum(jnp.sum(img * (1.0 + 0.01 * jnp.arange(img.size, dtype=img.dtype)
+                                   .reshape(img.shape))) for img in imgs)
+        return total, imgs
+
+    return eqx.filter_jit(jax.value_and_grad(loss, has_aux=True))
+
+
+# ------------------------------------------------------------------ strategies
+
+def log_uniform(lo, hi):
+    return st.floats(math.log10(lo), math.log10(hi)).map(lambda e: 10.0 ** e)
+
+
+def with_edges(strategy, *edges):
+    return st.one_of(st.sampled_from(edges), strategy)
+
+
+SERSIC_N = with_edges(st.floats(0.2, 10.0), 0.2, 0.5, 1.0, 4.0, 10.0)
+RE_PIX = with_edges(log_uniform(1e-3, 1e3), 1e-3, 1e3)
+Q = with_edges(st.floats(0.05, 1.0), 0.05, 1.0)
+PA = with_edges(st.floats(-math.pi, math.pi), 0.0, math.pi / 2, math.pi)
+
+# ------------------------------------------------------------------ one Sérsic on a grid
+
+PIX = 0.1
+HALF = 7.5 * PIX                                   # 15 × 15 pixels; pixel centres at k·0.1
+SERSIC_FIELD = ((-HALF, HALF), (-HALF, HALF))
+CENTER_KINDS = {
+    "pixel centre": st.just((0.0, 0.0)),
+    "other pixel centre": st.just((0.2, -0.3)),
+    "pixel corner": st.just((0.05, -0.05)),
+    "pixel edge": st.just((0.05, 0.1)),
+    "anywhere": st.tuples(st.floats(-0.4, 0.4), st.floats(-0.4, 0.4)),
+}
+CENTER = st.sampled_from(sorted(CENTER_KINDS)).flatmap(CENTER_KINDS.get)
+
+
+def sersic_source(flux, re_arcsec, n, q, pa, center, dtype):
+    return Source(bulge=Sersic(jnp.array([flux]), jnp.array(re_arcsec), jnp.array(n),
+                               jnp.array(q), jnp.array(pa), jnp.array(center))).astype(dtype)
+
+
+_TEMPLATE = sersic_source(1.0, 0.1, 1.0, 0.8, 0.1, (0.0, 0.0), jnp.float64)
+_SERSIC_ACC = Accuracy(source_order=3, exact_core=3)
+SERSIC_MODELS = {
+    d: build_model(_TEMPLATE.astype(d), [Band("zero-sky", PIX, 1000.0, 0.0)],
+                   field_arcsec=SERSIC_FIELD, accuracy=_SERSIC_ACC, dtype=d) for d in DTYPES}
+SERSIC_VG = {d: value_and_grad_fn(m) for d, m in SERSIC_MODELS.items()}
+
+
+@jax.jit
+def field_flux_exact(re_arcsec, n, q, pa, c1, c2):
+    """Light of a unit-flux Sérsic inside the whole field (one big pixel, exact fan integral)."""
+    return profiles.sersic_pixel_flux_exact(
+        jnp.float64(-HALF), jnp.float64(HALF), jnp.float64(-HALF), jnp.float64(HALF),
+        flux=1.0, re_arcsec=re_arcsec, n=n, q=q, pa_rad=pa, center1=c1, center2=c2, nodes=64)
+
+
+@given(n=SERSIC_N, re_pix=RE_PIX, q=Q, pa=PA, center=CENTER,
+       log_flux=st.floats(-20, 20), dtype_index=st.sampled_from([0, 1]))
+def test_sersic_edges_finite_conserving(n, re_pix, q, pa, center, log_flux, dtype_index):
+    dtype = DTYPES[dtype_index]
+    if dtype == jnp.float32:
+        log_flux = float(np.clip(log_flux, -15, 15))
+    flux = 10.0 ** log_flux
+    src = sersic_source(flux, re_pix * PIX, n, q, pa, center, dtype)
+    (_, imgs), grads = SERSIC_VG[dtype](src)
+    assert_finite_and_dtype(imgs, grads, dtype, f"sersic n={n} re={re_pix}px q={q}")
+    img = np.asarray(imgs[0], np.float64)
+    assert img.min() >= 0.0, "negative light"
+    # flux conservation: the pixel sum is the light inside the field (exact fan integral),
+    # where it must hold: the profile is resolved by the pixel sampling (minor axis R_e ≥ 1
+    # pixel) or its light lies inside the exactly integrated 3 × 3 core. Thin, unresolved
+    # profiles reaching beyond the core are a known limitation (see the xfail test below).
+    r_out = float(profiles.sersic_radius_enclosing(0.9999, re_pix, n))     # pixels
+    if not (q * re_pix >= 1.0 or r_out <= 1.0):
+        return
+    inside = float(field_flux_exact(re_pix * PIX, n, q, pa, *center))
+    total = img.sum() / flux
+    note(f"pixel sum / flux = {total!r}, exact light in the field / flux = {inside!r}")
+    tol = 2e-3 if dtype == jnp.float64 else 5e-3
+    assert abs(total - inside) <= tol * max(inside, 1e-300) + 1e-12, (total, inside)
+
+
+@pytest.mark.xfail(strict=True, reason="thin (q·R_e < 1 pixel) profile reaching beyond the "
+                   "exact core: Gauss–Legendre samples on the line invent 15 % of the flux")
+def test_thin_unresolved_profile_beyond_core_conserves_flux():
+    src = sersic_source(1.0, 1.0 * PIX, 0.2, 0.05, 0.0, (0.2, -0.3), jnp.float64)
+    img = np.asarray(SERSIC_VG[jnp.float64](src)[0][1][0])
+    assert img.sum() == pytest.approx(1.0, rel=1e-2)   # measured: 1.155
+
+
+# ------------------------------------------------------------------ lensed clumps on an SIS
+
+THETA_E = 0.5
+LENS = SIS(jnp.array(THETA_E), jnp.array([0.0, 0.0]))
+# 81 lens pixels of 0.02" (one ray per pixel, at its centre): one ray sits exactly on the
+# lens centre, and rays sit exactly on the critical curve |θ| = θ_E
+LENSED_FIELD = ((-0.81, 0.81), (-0.81, 0.81))
+N_CLUMPS = 4
+
+
+def clumps(centers, flux, re, n, q, pa, dtype):
+    return Clumps(jnp.asarray(centers), jnp.asarray(flux)[:, None], jnp.asarray(re),
+                  jnp.asarray(n), jnp.asarray(q), jnp.asarray(pa))
+
+
+_LENSED_TEMPLATE = Source(clumps=clumps(
+    np.array([[-0.1, -0.1], [0.1, 0.1], [0.0, 0.0], [0.05, -0.02]]), np.ones(N_CLUMPS),
+    np.full(N_CLUMPS, 0.01), np.ones(N_CLUMPS), np.ones(N_CLUMPS), np.zeros(N_CLUMPS),
+    jnp.float64))
+
+
+def lensed_model(mode, dtype, lens=LENS):
+    return build_model(_LENSED_TEMPLATE.astype(dtype), [Band("b", 0.06, 1000.0, 0.1)],
+                       lens=lens, field_arcsec=LENSED_FIELD, lens_pixel_arcsec=0.02,
+                       source_pixel_arcsec=0.004,
+                       accuracy=Accuracy(lens_subsampling=1, source_order=2, exact_core=3,
+                                         source_mode=mode), dtype=dtype)
+
+
+LENSED_VG = {(mode, d): value_and_grad_fn(lensed_model(mode, d))
+             for mode, d in (("analytic", jnp.float64), ("analytic", jnp.float32),
+                             ("grid", jnp.float64))}
+
+CLUMP_CENTER = st.one_of(
+    st.just((0.0, 0.0)),                                   # on the SIS point caustic
+    st.floats(-math.pi, math.pi).map(lambda a: (THETA_E * math.cos(a), THETA_E * math.sin(a))),
+    st.tuples(st.floats(-0.12, 0.12), st.floats(-0.12, 0.12)),
+    st.tuples(st.floats(-1e-9, 1e-9), st.floats(-1e-9, 1e-9)),
+)
+
+
+@st.composite
+def clump_params(draw):
+    centers = np.array([draw(CLUMP_CENTER) for _ in range(N_CLUMPS)])
+    flux = np.array([10.0 ** draw(st.floats(-12, 12)) for _ in range(N_CLUMPS)])
+    re = np.array([draw(log_uniform(1e-5, 0.05)) for _ in range(N_CLUMPS)])
+    n = np.array([draw(SERSIC_N) for _ in range(N_CLUMPS)])
+    q = np.array([draw(Q) for _ in range(N_CLUMPS)])
+    pa = np.array([draw(PA) for _ in range(N_CLUMPS)])
+    return centers, flux, re, n, q, pa
+
+
+@given(params=clump_params(), key=st.sampled_from(sorted(LENSED_VG, key=str)))
+def test_lensed_clumps_on_caustics_finite(params, key):
+    mode, dtype = key
+    src = Source(clumps=clumps(*params, dtype)).astype(dtype)
+    (_, imgs), grads = LENSED_VG[(mode, dtype)](src)
+    assert_finite_and_dtype(imgs, grads, dtype, f"lensed {mode}")
+    assert float(jnp.min(imgs[0])) >= 0.0
+
+
+def test_lensed_point_caustic_makes_a_ring():
+    """A clump exactly on the SIS caustic: light spread over the Einstein ring, not a NaN."""
+    src = Source(clumps=clumps(np.zeros((N_CLUMPS, 2)), np.ones(N_CLUMPS),
+                               np.full(N_CLUMPS, 0.01), np.ones(N_CLUMPS), np.ones(N_CLUMPS),
+                               np.zeros(N_CLUMPS), jnp.float64))
+    (_, imgs), _ = LENSED_VG[("analytic", jnp.float64)](src)
+    img = np.asarray(imgs[0])
+    assert np.all(np.isfinite(img))
+    # magnified well beyond the unlensed flux (a ring of radius θ_E around the centre)
+    assert img.sum() > 10 * N_CLUMPS
+
+
+@pytest.mark.xfail(strict=True, reason="NaN gradient: Sérsic centre within ~1e-18 of a pixel "
+                   "corner (not exactly on it) in sersic_pixel_flux_exact; see benchmarks/README.md")
+def test_exact_pixel_flux_gradient_centre_near_a_corner():
+    """Found by test_lensed_clumps_on_caustics_finite (grid mode, clump at β = (0.5, 0)).
+
+    The grid's pixel edge lands 1.7e-18 from the centre; pa = π/2 leaves u, v ~ 1e-19 ≠ 0, so
+    the vertex is not treated as degenerate and 1/r² factors overflow to inf·0 = NaN.
+    """
+    g = jax.grad(lambda c1, c2: profiles.sersic_pixel_flux_exact(
+        0.0, 0.004, 1.734723475976807e-18, 0.004 + 1.734723475976807e-18, flux=1.0,
+        re_arcsec=0.01, n=1.0, q=0.05, pa_rad=math.pi / 2, center1=c1, center2=c2),
+        argnums=(0, 1))(jnp.float64(0.0), jnp.float64(0.0))
+    assert all(np.isfinite(float(v)) for v in g)
+
+
+# ------------------------------------------------------------------ rays outside a map
+
+def _small_sis_map():
+    x = np.arange(-0.5, 0.5001, 0.05)              # covers only the inner part of the field
+    xx, yy = np.meshgrid(x, x)
+    r = np.hypot(xx, yy)
+    r = np.where(r > 0, r, 1.0)
+    return DeflectionGrid(jnp.asarray(THETA_E * xx / r), jnp.asarray(THETA_E * yy / r),
+                          jnp.asarray([x[0], x[0]]), 0.05)
+
+
+SMALL_MAP = _small_sis_map()
+OUTSIDE_VG = value_and_grad_fn(lensed_model("analytic", jnp.float64, lens=SMALL_MAP))
+
+
+@given(params=clump_params())
+def test_rays_outside_the_map_finite(params):
+    src = Source(clumps=clumps(*params, jnp.float64))
+    (_, imgs), grads = OUTSIDE_VG(src)
+    assert_finite_and_dtype(imgs, grads, jnp.float64, "rays outside the map")
+
+
+@given(t1=st.floats(-1e6, 1e6), t2=st.floats(-1e6, 1e6))
+def test_map_deflection_outside_is_edge_clamped(t1, t2):
+    """The documented rule: outside the map, the deflection of the nearest edge pixel; finite gradient."""
+    f = jax.value_and_grad(lambda a, b: SMALL_MAP.deflection(a, b)[0], argnums=(0, 1))
+    val, g = f(jnp.float64(t1), jnp.float64(t2))
+    assert np.isfinite(float(val)) and all(np.isfinite(float(v)) for v in g)
+    x = np.clip(t1, -0.5, 0.5)
+    y = np.clip(t2, -0.5, 0.5)
+    inner = SMALL_MAP.deflection(jnp.float64(x), jnp.float64(y))[0]
+    assert float(val) == pytest.approx(float(inner), abs=1e-12)
+
+
+# ------------------------------------------------------------------ empty and many clumps
+
+def _empty_clumps(nb=1, dtype=jnp.float64):
+    z = jnp.zeros((0,), dtype)
+    return Clumps(jnp.zeros((0, 2), dtype), jnp.zeros((0, nb), dtype), z, z, z, z)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_empty_clump_list_with_host(dtype):
+    src = Source(bulge=Sersic(jnp.array([5.0]), jnp.array(0.2), jnp.array(2.0),
+                              jnp.array(0.7), jnp.array(0.3), jnp.array([0.0, 0.0])),
+                 clumps=_empty_clumps()).astype(dtype)
+    m = build_model(src, [Band("b", PIX, 1000.0, 0.0)], field_arcsec=SERSIC_FIELD,
+                    accuracy=Accuracy(source_order=2, exact_core=3), dtype=dtype)
+    (_, imgs), grads = value_and_grad_fn(m)(src)
+    assert_finite_and_dtype(imgs, grads, dtype, "empty clumps")
+
+
+def test_only_an_empty_clump_list_is_a_config_error():
+    with pytest.raises(ConfigError):
+        build_model(Source(clumps=_empty_clumps()), [Band("b", PIX, 1000.0)],
+                    field_arcsec=SERSIC_FIELD)
+
+
+MANY = 10_000
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_ten_thousand_clumps_cheap_and_conserving(dtype):
+    """1e4 small clumps (cheap settings): finite, flux conserved, gradients finite.
+
+    1e5 clumps are timed in benchmarks/ (bench_scaling.py), not here.
+    """
+    rng = np.random.default_rng(3)
+    cl = Clumps(jnp.asarray(rng.uniform(-2.4, 2.4, (MANY, 2))),
+                jnp.asarray(rng.uniform(0.01, 1.0, (MANY, 1))),
+                jnp.asarray(rng.uniform(0.005, 0.03, MANY)), jnp.asarray(rng.uniform(0.5, 1.5, MANY)),
+                jnp.asarray(rng.uniform(0.2, 1.0, MANY)), jnp.asarray(rng.uniform(0, 3, MANY)))
+    src = Source(clumps=cl).astype(dtype)
+    m = build_model(src, [Band("b", PIX, 1000.0, 0.0)], field_arcsec=((-3.2, 3.2), (-3.2, 3.2)),
+                    accuracy=Accuracy(source_order=2, exact_core=1, stamp_flux_fraction=0.999),
+                    dtype=dtype)
+    (_, imgs), grads = value_and_grad_fn(m)(src)
+    assert_finite_and_dtype(imgs, grads, dtype, "1e4 clumps")
+    total = float(np.sum(np.asarray(imgs[0], np.float64)))
+    expected = float(np.sum(np.asarray(cl.flux)))
+    assert total == pytest.approx(expected, rel=2e-3 if dtype == jnp.float64 else 5e-3)
+
+
+# ------------------------------------------------------------------ zero sky and noise
+
+OBSERVE = {d: eqx.filter_jit(lambda s, k, m=m: m.observe(s, k)) for d, m in SERSIC_MODELS.items()}
+
+
+@given(log_flux=st.floats(-30, 12), seed=st.integers(0, 2**31 - 1),
+       dtype_index=st.sampled_from([0, 1]))
+def test_zero_sky_noise_is_finite(log_flux, seed, dtype_index):
+    """Zero sky: Poisson draws where λ = 0 are 0, Gaussian ones where λ is huge; all finite."""
+    dtype = DTYPES[dtype_index]
+    src = sersic_source(10.0 ** log_flux, 0.1, 1.0, 0.6, 0.2, (0.0, 0.0), dtype)
+    noisy, clean, var = OBSERVE[dtype](src, jax.random.key(seed))
+    for arr in (noisy[0], clean[0], var[0]):
+        assert arr.dtype == jnp.dtype(dtype)
+        assert bool(jnp.all(jnp.isfinite(arr)))
+    assert float(jnp.min(var[0])) >= 0.0
+    assert float(jnp.min(noisy[0])) >= 0.0 or 10.0 ** log_flux * 1000.0 > 1e4
+
+
+# ------------------------------------------------------------------ even-sized PSFs
+
+def _gaussian(shape, sigma):
+    y, x = np.mgrid[:shape[0], :shape[1]]
+    y = y - (shape[0] - 1) / 2
+    x = x - (shape[1] - 1) / 2
+    return np.exp(-(x**2 + y**2) / (2 * sigma**2))
+
+
+@pytest.mark.parametrize("shape,effective", [((20, 20), False), ((21, 20), False),
+                                             ((20, 20), True), ((2, 2), False)])
+def test_even_psf_conserves_flux_and_centre(shape, effective):
+    """An even PSF is centred between its pixels: flux and centroid must survive."""
+    psf = _gaussian(shape, 2.0 if shape[0] > 4 else 0.5)
+    p = 0.1
+    src = Source(bulge=Sersic(jnp.array([10.0]), jnp.array(0.05), jnp.array(1.0),
+                              jnp.array(1.0), jnp.array(0.0), jnp.array([0.0, 0.0])))
+    band = Band("psf", p, 1000.0, 0.0, psf=psf, psf_pixel_arcsec=p / 4 if effective else p,
+                psf_effective=effective)
+    field = ((-2.05, 2.05), (-2.05, 2.05))
+    m = build_model(src, [band], field_arcsec=field,
+                    accuracy=Accuracy(source_order=2, exact_core=0, psf_oversampling=3))
+    (_, imgs), grads = value_and_grad_fn(m)(src)
+    assert_finite_and_dtype(imgs, grads, jnp.float64, f"psf {shape}")
+    img = np.asarray(imgs[0])
+    assert img.sum() == pytest.approx(10.0, rel=2e-3)
+    y, x = np.mgrid[:img.shape[0], :img.shape[1]]
+    cy = (y * img).sum() / img.sum() - (img.shape[0] - 1) / 2
+    cx = (x * img).sum() / img.sum() - (img.shape[1] - 1) / 2
+    assert abs(cx) < 0.02 and abs(cy) < 0.02, (cx, cy)
+
+
+def test_profiles_settings():
+    """The ci profile is derandomized (reproducible runs) unless another one is chosen."""
+    s = settings()
+    assert s.deadline is None
