@@ -28,7 +28,7 @@ import numpy as np
 
 from . import convolve, noise, profiles, render
 from .errors import ConfigError, require
-from .lensing.grid import bilinear_interpolate
+from .lensing.grid import bilinear_interpolate, bilinear_interpolate_channels
 from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin, rebin_operators
 from .source import Source
 
@@ -46,6 +46,8 @@ class Accuracy:
     stamp_flux_fraction: light fraction of the largest clump its stamp must hold.
     source_flux_fraction: light fraction of each host component inside the traced region.
     gaussian_noise_above: expected counts above which noise is drawn as a Gaussian (None: never).
+    host_subsampling: evaluate host components at every ray (True) or at each lens-plane
+        pixel's centre only (False: they vary little across a pixel's source-plane footprint).
     """
 
     lens_subsampling: int = 3
@@ -56,6 +58,7 @@ class Accuracy:
     stamp_flux_fraction: float = 0.9999
     source_flux_fraction: float = 0.99
     gaussian_noise_above: Optional[float] = 1.0e4
+    host_subsampling: bool = False
 
     def validate(self, name="render.accuracy"):
         for key in ("lens_subsampling", "source_order", "psf_oversampling"):
@@ -79,7 +82,8 @@ ACCURACY_PRESETS = {
                      stamp_flux_fraction=0.999, source_flux_fraction=0.98),
     "default": Accuracy(),
     "high": Accuracy(lens_subsampling=5, source_order=5, exact_core=7, psf_oversampling=5,
-                     stamp_flux_fraction=0.99999, source_flux_fraction=0.999),
+                     stamp_flux_fraction=0.99999, source_flux_fraction=0.999,
+                     host_subsampling=True),
 }
 
 
@@ -127,7 +131,7 @@ class _BandLayout:
     sky_counts_per_s: float
     psf_shape: Optional[tuple]
     psf_effective: bool
-    stamp: int             # clump stamp side on the sub-grid (unlensed models)
+    stamp_sides: tuple     # clump stamp sides on the sub-grid (unlensed models)
 
 
 # ------------------------------------------------------------------ static helpers
@@ -167,12 +171,12 @@ def source_extent(source: Source, flux_fraction: float, stamp_flux_fraction: flo
     return np.asarray(center), radius
 
 
-def _clump_stamp(source: Source, pixel_arcsec: float, fraction: float) -> int:
+def _clump_groups_for(source: Source, pixel_arcsec: float, fraction: float):
+    """Stamp groups [(side, indices)] of the source's clumps on a grid of this pixel."""
     cl = source.clumps
     if cl is None or cl.count == 0:
-        return 0
-    return render.stamp_size(float(np.max(cl.re_arcsec)), float(np.max(cl.n)), pixel_arcsec,
-                             flux_fraction=fraction)
+        return []
+    return render.stamp_groups(cl.re_arcsec, cl.n, pixel_arcsec, flux_fraction=fraction)
 
 
 def _trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
@@ -190,28 +194,50 @@ def _trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
     return out1, out2
 
 
-def traced_pixels(lens, hr_grid: Grid, center, radius):
+def trace_corners(lens, hr_grid: Grid):
+    """β (two [ny + 1, nx + 1] arrays) at the corners of every lens-plane pixel."""
+    xc, yc = np.meshgrid(hr_grid.x_edges(), hr_grid.y_edges())
+    b1, b2 = _trace_in_chunks(lens, xc.ravel(), yc.ravel())
+    return b1.reshape(xc.shape), b2.reshape(xc.shape)
+
+
+def traced_pixels(corner_b1, corner_b2, center, radius):
     """Rows and columns of lens-plane pixels whose light can come from the source disc.
 
-    A pixel is traced when the disc (center, radius) comes within 1.5 pixel
-    footprints of its centre's β; the footprint is the largest β step to a
-    neighbouring pixel, so that thin, highly magnified images are not missed.
+    A pixel is traced when the disc (center, radius) comes within its
+    source-plane footprint: the distance from the mean of its corners' β to the
+    centre is below radius + the largest corner distance from that mean, so
+    that thin, highly magnified images are not missed.
     """
-    xc, yc = np.meshgrid(hr_grid.x_centers(), hr_grid.y_centers())
-    b1, b2 = _trace_in_chunks(lens, xc.ravel(), yc.ravel())
-    b1 = b1.reshape(hr_grid.shape)
-    b2 = b2.reshape(hr_grid.shape)
-    step = np.zeros(hr_grid.shape)
-    for axis in (0, 1):
-        d = np.hypot(np.diff(b1, axis=axis), np.diff(b2, axis=axis))
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (0, 1)
-        step = np.maximum(step, np.pad(d, pad, mode="edge"))
-        pad[axis] = (1, 0)
-        step = np.maximum(step, np.pad(d, pad, mode="edge"))
-    dist = np.hypot(b1 - center[0], b2 - center[1])
-    rows, cols = np.nonzero(dist < radius + 1.5 * step)
+    quads = [(slice(0, -1), slice(0, -1)), (slice(0, -1), slice(1, None)),
+             (slice(1, None), slice(0, -1)), (slice(1, None), slice(1, None))]
+    m1 = sum(corner_b1[q] for q in quads) / 4
+    m2 = sum(corner_b2[q] for q in quads) / 4
+    reach = np.max([np.hypot(corner_b1[q] - m1, corner_b2[q] - m2) for q in quads], axis=0)
+    dist = np.hypot(m1 - center[0], m2 - center[1])
+    rows, cols = np.nonzero(dist < radius + 1.01 * reach)
     return rows, cols
+
+
+def rays_in_pixels(corner_b1, corner_b2, rows, cols, offsets):
+    """β of rays at sub-pixel offsets (in (−½, ½) pixel) of the given pixels: [M, R] each.
+
+    Bilinear interpolation of the corners' β: the lens mapping is smooth on the
+    scale of a lens-plane pixel, and each pixel needs one deflection per corner
+    instead of one per ray.
+    """
+    ox, oy = offsets
+    fx = (ox + 0.5)[None, :]
+    fy = (oy + 0.5)[None, :]
+    out = []
+    for b in (corner_b1, corner_b2):
+        v00 = b[rows, cols][:, None]
+        v01 = b[rows, cols + 1][:, None]
+        v10 = b[rows + 1, cols][:, None]
+        v11 = b[rows + 1, cols + 1][:, None]
+        out.append(v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy) + v10 * (1 - fx) * fy
+                   + v11 * fx * fy)
+    return out
 
 
 # ------------------------------------------------------------------ the model
@@ -233,7 +259,8 @@ class SceneModel(eqx.Module):
     lensed: bool = eqx.field(static=True)
     hr_grid: Optional[Grid] = eqx.field(static=True)
     clump_grid: Optional[Grid] = eqx.field(static=True)
-    clump_stamp: int = eqx.field(static=True)
+    clump_stamp_sides: tuple = eqx.field(static=True)
+    clump_stamp_index: tuple
     psf_fts: tuple
     rebin_ops: tuple
     traced_rows: Optional[jnp.ndarray]
@@ -241,6 +268,9 @@ class SceneModel(eqx.Module):
     beta1: Optional[jnp.ndarray]
     beta2: Optional[jnp.ndarray]
     ray_weights: Optional[jnp.ndarray]
+    beta1_center: Optional[jnp.ndarray]
+    beta2_center: Optional[jnp.ndarray]
+    stamp_index_unlensed: tuple = ()
 
     @property
     def band_names(self):
@@ -248,14 +278,19 @@ class SceneModel(eqx.Module):
 
     # -- lens plane ------------------------------------------------------------
 
-    def _clump_source_grids(self, source: Source):
-        """Clump surface brightness on the source-plane grid, per band: [B, ny, nx]."""
-        cl = source.clumps
-        stamps, i0, j0 = render.clump_stamps(cl, self.clump_grid, self.clump_stamp,
-                                             order=self.accuracy.source_order,
-                                             core=self.accuracy.exact_core)
-        flux = render.scatter_stamps(stamps, i0, j0, cl.flux, self.clump_grid)
-        return flux / self.clump_grid.pixel_arcsec**2
+    def _clump_groups(self):
+        return tuple(zip(self.clump_stamp_sides, self.clump_stamp_index))
+
+    def _clump_source_grid(self, source: Source, flux):
+        """Clump surface brightness [ny, nx, C] of C bands on the source-plane grid, zero border."""
+        img = render.clumps_image(source.clumps, self.clump_grid, self._clump_groups(), flux,
+                                  order=self.accuracy.source_order, core=self.accuracy.exact_core)
+        return jnp.pad(img / self.clump_grid.pixel_arcsec**2, ((1, 1), (1, 1), (0, 0)))
+
+    def _band_chunk(self, nb: int) -> int:
+        """Bands per pass over the rays: as many as fit in ~1 GB of source-plane grid."""
+        npix = (self.clump_grid.nx + 2) * (self.clump_grid.ny + 2)
+        return int(max(1, min(nb, 1.0e9 // (8 * npix))))
 
     def traced_values(self, source: Source):
         """Flux [B, M] of every traced lens-plane pixel (counts/s)."""
@@ -264,28 +299,36 @@ class SceneModel(eqx.Module):
         nb = _n_bands(source)
         dtype = b1.dtype
         total = jnp.zeros((nb, b1.shape[0]), dtype)
+        # host components vary slowly across a lens-plane pixel's footprint: one ray per
+        # pixel (its centre) unless host_subsampling asks for all of them
+        if self.accuracy.host_subsampling:
+            h1, h2, hw = b1, b2, w
+        else:
+            h1, h2, hw = self.beta1_center[:, None], self.beta2_center[:, None], jnp.ones(1, dtype)
         if source.bulge is not None:
             s = source.bulge
-            u = render.sersic_unit_brightness(b1, b2, **render._sersic_kw(s)) @ w
+            u = render.sersic_unit_brightness(h1, h2, **render._sersic_kw(s)) @ hw
             total = total + s.flux[:, None] * u[None, :]
         if source.disk is not None:
             d = source.disk
-            u = render.disk_unit_brightness(d, b1, b2) @ w
+            u = render.disk_unit_brightness(d, h1, h2) @ hw
             total = total + d.sersic.flux[:, None] * u[None, :]
         if source.clumps is not None and source.clumps.count > 0:
             if self.accuracy.source_mode == "analytic":
                 total = total + render.clumps_brightness(source.clumps, b1, b2) @ w
             else:
-                grids = self._clump_source_grids(source)
                 g = self.clump_grid
                 x = (b1 - g.x0_arcsec) / g.pixel_arcsec + 1.0  # +1: the zero border
                 y = (b2 - g.y0_arcsec) / g.pixel_arcsec + 1.0
-                padded = jnp.pad(grids, ((0, 0), (1, 1), (1, 1)))
 
-                def one_band(img):
-                    return bilinear_interpolate(img, x, y) @ w
-
-                total = total + jax.lax.map(one_band, padded)
+                step = self._band_chunk(nb)
+                parts = []
+                for lo in range(0, nb, step):
+                    flux = source.clumps.flux[:, lo:lo + step]
+                    grid = self._clump_source_grid(source, flux)
+                    vals = bilinear_interpolate_channels(grid, x, y)      # [M, rays, C]
+                    parts.append(jnp.einsum("mrc,r->cm", vals, w))
+                total = total + jnp.concatenate(parts, axis=0)
         return total * self.hr_grid.pixel_arcsec**2
 
     def source_magnification_map(self):
@@ -311,13 +354,18 @@ class SceneModel(eqx.Module):
         """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
         cl = source.clumps
         mu = self.source_magnification_map()
-        stamps, i0, j0 = render.clump_stamps(cl, self.clump_grid, self.clump_stamp,
-                                             order=self.accuracy.source_order,
-                                             core=self.accuracy.exact_core)
-        k = jnp.arange(self.clump_stamp)
-        rows = jnp.clip(j0[:, None, None] + k[None, :, None], 0, self.clump_grid.ny - 1)
-        cols = jnp.clip(i0[:, None, None] + k[None, None, :], 0, self.clump_grid.nx - 1)
-        return jnp.sum(stamps * mu[rows, cols], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
+        out = jnp.zeros(cl.count, mu.dtype)
+        for side, idx in self._clump_groups():
+            sub = jax.tree_util.tree_map(lambda a: a[idx], cl)
+            stamps, i0, j0 = render.clump_stamps(sub, self.clump_grid, side,
+                                                 order=self.accuracy.source_order,
+                                                 core=self.accuracy.exact_core)
+            k = jnp.arange(side)
+            rows = jnp.clip(j0[:, None, None] + k[None, :, None], 0, self.clump_grid.ny - 1)
+            cols = jnp.clip(i0[:, None, None] + k[None, None, :], 0, self.clump_grid.nx - 1)
+            mags = jnp.sum(stamps * mu[rows, cols], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
+            out = out.at[idx].set(mags)
+        return out
 
     def lens_plane(self, source: Source):
         """High-resolution lens-plane images [B, ny, nx], counts/s per lens-plane pixel."""
@@ -349,12 +397,9 @@ class SceneModel(eqx.Module):
             img = img + flux[k] * unit
         cl = source.clumps
         if cl is not None and cl.count > 0:
-            skey = ("stamps", g, lay.stamp)
-            if skey not in cache:
-                cache[skey] = render.clump_stamps(cl, g, lay.stamp, order=acc.source_order,
-                                                  core=acc.exact_core)
-            stamps, i0, j0 = cache[skey]
-            img = img + render.scatter_stamps(stamps, i0, j0, cl.flux[:, k:k + 1], g)[0]
+            groups = tuple(zip(lay.stamp_sides, self.stamp_index_unlensed[k]))
+            img = img + render.clumps_image(cl, g, groups, cl.flux[:, k:k + 1],
+                                            order=acc.source_order, core=acc.exact_core)[..., 0]
         return img
 
     def _observe_subgrid(self, sub, k: int, lay: _BandLayout):
@@ -444,7 +489,7 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                                    accuracy.stamp_flux_fraction)
     has_clumps = source.clumps is not None and source.clumps.count > 0
 
-    layouts, psf_fts = [], []
+    layouts, psf_fts, unlensed_index = [], [], []
     psf_margin = 0.0
     for band in bands:
         if band.psf is not None:
@@ -462,17 +507,19 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
             s = 1
         sub = band.pixel_arcsec / s
         kernel = _psf_kernel_for(band, sub) if band.psf is not None else None
-        stamp = _clump_stamp(source, sub, accuracy.stamp_flux_fraction) if lens is None else 0
+        groups = (_clump_groups_for(source, sub, accuracy.stamp_flux_fraction)
+                  if lens is None else [])
+        unlensed_index.append(tuple(jnp.asarray(i) for _, i in groups))
         layouts.append(_BandLayout(band.name, grid, s, float(band.exptime_s),
                                    float(band.sky_counts_per_s),
                                    None if kernel is None else kernel.shape,
-                                   bool(band.psf_effective), stamp))
+                                   bool(band.psf_effective), tuple(side for side, _ in groups)))
         psf_fts.append(None if kernel is None else
                        convolve.kernel_rfft(kernel, grid.subdivided(s).shape, dtype))
 
     if lens is None:
-        return SceneModel(tuple(layouts), accuracy, False, None, None, 0, tuple(psf_fts), (),
-                          None, None, None, None, None)
+        return SceneModel(tuple(layouts), accuracy, False, None, None, (), (), tuple(psf_fts), (),
+                          None, None, None, None, None, None, None, tuple(unlensed_index))
 
     # lens plane: one high-resolution grid over the union of the band fields
     x_lo = min(l.grid.x_range[0] for l in layouts)
@@ -480,31 +527,33 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     y_lo = min(l.grid.y_range[0] for l in layouts)
     y_hi = max(l.grid.y_range[1] for l in layouts)
     hr = Grid.covering((x_lo, x_hi), (y_lo, y_hi), lens_pixel_arcsec)
-    rows, cols = traced_pixels(lens, hr, center, radius)
+    corner_b1, corner_b2 = trace_corners(lens, hr)
+    rows, cols = traced_pixels(corner_b1, corner_b2, center, radius)
     if rows.size == 0:
         raise ConfigError("render.field_arcsec", field_arcsec,
                           "a lens-plane field where the source lands (no pixel of it maps "
                           f"within {radius:.3g}\" of the source centre {tuple(center)})")
-    order = accuracy.lens_subsampling
-    offs, wts = gauss_legendre_offsets(order)
+    offs, wts = gauss_legendre_offsets(accuracy.lens_subsampling)
     ox, oy = np.meshgrid(offs, offs)
     wxy = np.outer(wts, wts).ravel()
-    t1 = hr.x_centers()[cols][:, None] + ox.ravel()[None, :] * hr.pixel_arcsec
-    t2 = hr.y_centers()[rows][:, None] + oy.ravel()[None, :] * hr.pixel_arcsec
-    b1, b2 = _trace_in_chunks(lens, t1.ravel(), t2.ravel())
+    b1, b2 = rays_in_pixels(corner_b1, corner_b2, rows, cols, (ox.ravel(), oy.ravel()))
+    c1, c2 = rays_in_pixels(corner_b1, corner_b2, rows, cols, (np.zeros(1), np.zeros(1)))
+    del corner_b1, corner_b2
     rebin_ops = tuple(tuple(jnp.asarray(w, dtype) for w in
                             rebin_operators(hr, l.grid.subdivided(l.oversampling)))
                       for l in layouts)
 
-    clump_grid, stamp = None, 0
+    clump_grid, groups = None, []
     if has_clumps and accuracy.source_mode == "grid":
-        stamp = _clump_stamp(source, source_pixel_arcsec, accuracy.stamp_flux_fraction)
+        groups = _clump_groups_for(source, source_pixel_arcsec, accuracy.stamp_flux_fraction)
         cc = np.asarray(source.clumps.center_arcsec, float)
-        half = (stamp / 2 + 2) * source_pixel_arcsec
+        half = (max(side for side, _ in groups) / 2 + 2) * source_pixel_arcsec
         clump_grid = Grid.covering((cc[:, 0].min() - half, cc[:, 0].max() + half),
                                    (cc[:, 1].min() - half, cc[:, 1].max() + half),
                                    source_pixel_arcsec)
-    return SceneModel(tuple(layouts), accuracy, True, hr, clump_grid, stamp, tuple(psf_fts),
+    return SceneModel(tuple(layouts), accuracy, True, hr, clump_grid,
+                      tuple(side for side, _ in groups), tuple(jnp.asarray(i) for _, i in groups),
+                      tuple(psf_fts),
                       rebin_ops, jnp.asarray(rows), jnp.asarray(cols),
-                      jnp.asarray(b1.reshape(t1.shape), dtype),
-                      jnp.asarray(b2.reshape(t2.shape), dtype), jnp.asarray(wxy, dtype))
+                      jnp.asarray(b1, dtype), jnp.asarray(b2, dtype), jnp.asarray(wxy, dtype),
+                      jnp.asarray(c1[:, 0], dtype), jnp.asarray(c2[:, 0], dtype))

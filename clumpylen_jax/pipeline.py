@@ -148,8 +148,8 @@ def _host_pytrees(scene, dtype):
                               _f(a.orientation_rad, dtype))
         if d.texture is not None:
             t = d.texture
-            perm = jnp.asarray(profiles.perlin_permutation(scene.seed + 7919))
-            tex = Texture(_f(t.amplitude, dtype), _f(t.scale_arcsec, dtype), int(t.octaves), perm)
+            tex = Texture(_f(t.amplitude, dtype), _f(t.scale_arcsec, dtype), int(t.octaves),
+                          jnp.asarray(scene.seed, jnp.uint32))
         disk = Disk(Sersic(_f([1.0], dtype), _f(d.re_arcsec, dtype), _f(d.n, dtype),
                            _f(d.q, dtype), _f(d.pa_rad, dtype), c),
                     _f(d.inclination_rad, dtype), arms, tex)
@@ -182,6 +182,24 @@ def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
 
 def _counts(mag, zp):
     return 0.0 if not np.isfinite(mag) else float(10 ** (-0.4 * (mag - zp)))
+
+
+def _fixed_shape_calls(fn, chunk=1 << 16):
+    """A numpy function evaluating a jitted fn(x, y) in padded chunks of one shape (one compile)."""
+    def call(x, y):
+        x = np.asarray(x, float)
+        y = np.asarray(y, float)
+        flat_x, flat_y = x.ravel(), y.ravel()
+        out = np.empty(flat_x.size)
+        for s in range(0, flat_x.size, chunk):
+            n = min(chunk, flat_x.size - s)
+            px = np.zeros(chunk)
+            py = np.zeros(chunk)
+            px[:n] = flat_x[s:s + n]
+            py[:n] = flat_y[s:s + n]
+            out[s:s + n] = np.asarray(fn(jnp.asarray(px), jnp.asarray(py)))[:n]
+        return out.reshape(x.shape)
+    return call
 
 
 def _sample_catalog(scene, bulge, disk, cosmology):
@@ -225,7 +243,7 @@ def _sample_catalog(scene, bulge, disk, cosmology):
         age_max_myr=cl.ages.max_myr, q_range=tuple(cl.q_range), sersic_n=cl.sersic_n)
     table = population.sample_clumps(
         rng, host_mass_msun=float(host_cfg.mass_msun), mass_fraction=float(cl.mass_fraction),
-        host_brightness=lambda x, y: np.asarray(fn(jnp.asarray(x), jnp.asarray(y))),
+        host_brightness=_fixed_shape_calls(fn),
         bbox_arcsec=bbox, arcsec_per_pc=scale, config=config)
     masses[host_name] = float(table.meta["host_mass_remaining_msun"])
     return table, masses
@@ -513,12 +531,11 @@ def _write_hr(prep: Prepared, out: Path):
     from .pixels import Grid
     pix = max(scene.render.source_pixel_arcsec, 2 * radius / 2047)
     sgrid = Grid.centered(center, radius, pix)
-    stamp = 0
+    groups = []
     if mono.clumps is not None and mono.clumps.count > 0:
-        stamp = render.stamp_size(float(np.max(mono.clumps.re_arcsec)),
-                                  float(np.max(mono.clumps.n)), sgrid.pixel_arcsec,
-                                  flux_fraction=prep.accuracy.stamp_flux_fraction)
-    unl = np.asarray(jax.jit(lambda s: _source_plane_images(s, sgrid, prep.accuracy, stamp))(mono))
+        groups = render.stamp_groups(mono.clumps.re_arcsec, mono.clumps.n, sgrid.pixel_arcsec,
+                                     flux_fraction=prep.accuracy.stamp_flux_fraction)
+    unl = np.asarray(jax.jit(lambda s: _source_plane_images(s, sgrid, prep.accuracy, groups))(mono))
     lensed = None
     if model.lensed:
         lensed = np.asarray(_jit_call(model, 'lens_plane', mono))
@@ -537,23 +554,20 @@ def _write_hr(prep: Prepared, out: Path):
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
 
 
-def _source_plane_images(source: Source, grid, accuracy, stamp: int):
+def _source_plane_images(source: Source, grid, accuracy, groups):
     """Pixel-integrated source-plane images [B, ny, nx] (counts or μJy per pixel)."""
-    nb = None
     img = 0.0
     if source.bulge is not None:
-        nb = source.bulge.flux.shape[0]
         img = img + source.bulge.flux[:, None, None] * render.sersic_image(
             source.bulge, grid, order=accuracy.source_order, core=accuracy.exact_core)[None]
     if source.disk is not None:
-        nb = source.disk.sersic.flux.shape[0]
         img = img + source.disk.sersic.flux[:, None, None] * render.disk_image(
             source.disk, grid, order=accuracy.source_order, core=accuracy.exact_core)[None]
     cl = source.clumps
     if cl is not None and cl.count > 0:
-        stamps, i0, j0 = render.clump_stamps(cl, grid, stamp, order=accuracy.source_order,
-                                             core=accuracy.exact_core)
-        img = img + render.scatter_stamps(stamps, i0, j0, cl.flux, grid)
+        img = img + jnp.moveaxis(render.clumps_image(cl, grid, groups, cl.flux,
+                                                     order=accuracy.source_order,
+                                                     core=accuracy.exact_core), -1, 0)
     return img
 
 

@@ -250,32 +250,35 @@ def _fade(t):
     return t * t * t * (t * (t * 6 - 15) + 10)
 
 
-def perlin_permutation(seed: int, size: int = 256) -> np.ndarray:
-    """The hash table of a Perlin texture: a permutation drawn from `seed`, tiled twice."""
-    perm = np.random.default_rng(seed).permutation(size).astype(np.int32)
-    return np.concatenate([perm, perm])
+def _hash2(ix, iy, seed):
+    """A 32-bit integer hash of lattice points (xor-multiply mixing): cheap and gather-free."""
+    h = (ix.astype(jnp.uint32) * jnp.uint32(0x8DA6B343)) ^ (iy.astype(jnp.uint32) * jnp.uint32(0xD8163841))
+    h = h ^ seed
+    h = (h ^ (h >> 15)) * jnp.uint32(0x2C1B3C6D)
+    h = (h ^ (h >> 12)) * jnp.uint32(0x297A2D39)
+    return h ^ (h >> 15)
 
 
-def perlin2d(x, y, perm):
-    """Improved Perlin gradient noise (Perlin 2002) at (x, y) in lattice units, range ≈ [−1, 1].
+def perlin2d(x, y, seed):
+    """Gradient ("Perlin") noise at (x, y) in lattice units, range ≈ [−1, 1].
 
-    C² smooth (quintic fade), deterministic for a given permutation table.
-    Gradients are the 8 unit directions of the 2-D lattice.
+    The gradient at each lattice point is one of the four diagonals (±1, ±1),
+    chosen by hashing the point with `seed` (uint32); quintic fade, so the
+    field is C² smooth. Deterministic for a given seed; no lookup tables.
     """
-    size = perm.shape[0] // 2
     xf = jnp.floor(x)
     yf = jnp.floor(y)
     fx = x - xf
     fy = y - yf
-    xi = jnp.mod(xf.astype(jnp.int32), size)
-    yi = jnp.mod(yf.astype(jnp.int32), size)
-    angles = jnp.arange(8) * (jnp.pi / 4)
-    gx_tab = jnp.cos(angles).astype(x.dtype)
-    gy_tab = jnp.sin(angles).astype(x.dtype)
+    xi = xf.astype(jnp.int32)
+    yi = yf.astype(jnp.int32)
+    seed = jnp.asarray(seed, jnp.uint32)
 
     def corner(ix, iy, dx, dy):
-        h = perm[perm[ix] + iy] % 8
-        return gx_tab[h] * dx + gy_tab[h] * dy
+        h = _hash2(ix, iy, seed)
+        gx = 1.0 - 2.0 * (h & 1).astype(x.dtype)
+        gy = 1.0 - 2.0 * ((h >> 1) & 1).astype(x.dtype)
+        return gx * dx + gy * dy
 
     n00 = corner(xi, yi, fx, fy)
     n10 = corner(xi + 1, yi, fx - 1, fy)
@@ -285,24 +288,25 @@ def perlin2d(x, y, perm):
     v = _fade(fy)
     nx0 = n00 + u * (n10 - n00)
     nx1 = n01 + u * (n11 - n01)
-    return (nx0 + v * (nx1 - nx0)) * math.sqrt(2.0)
+    return nx0 + v * (nx1 - nx0)
 
 
-def perlin_fbm(x, y, perm, octaves: int, persistence: float = 0.5):
+def perlin_fbm(x, y, seed, octaves: int, persistence: float = 0.5):
     """Sum of `octaves` Perlin octaves (frequency ×2, amplitude ×persistence), normalised to range ≈ [−1, 1]."""
     total = 0.0
     norm = 0.0
     amp = 1.0
     freq = 1.0
     for _ in range(octaves):
-        total = total + amp * perlin2d(x * freq, y * freq, perm)
+        # each octave its own seed, so octaves are independent fields
+        total = total + amp * perlin2d(x * freq, y * freq, seed + jnp.uint32(0x9E3779B9 * (_ + 1) & 0xFFFFFFFF))
         norm += amp
         amp *= persistence
         freq *= 2.0
     return total / norm
 
 
-def texture_modulation(x1, x2, *, center1, center2, amplitude, scale_arcsec, octaves, perm):
+def texture_modulation(x1, x2, *, center1, center2, amplitude, scale_arcsec, octaves, seed):
     """max(0, 1 + T·noise(β/scale)): a Perlin perturbation evaluated in the source plane."""
-    p = perlin_fbm((x1 - center1) / scale_arcsec, (x2 - center2) / scale_arcsec, perm, octaves)
+    p = perlin_fbm((x1 - center1) / scale_arcsec, (x2 - center2) / scale_arcsec, seed, octaves)
     return jnp.maximum(1.0 + amplitude * p, 0.0)

@@ -85,13 +85,13 @@ class Texture(eqx.Module):
     """Perlin-noise perturbation of a disk, evaluated in the source plane.
 
     amplitude: T ≥ 0 (brightness × max(0, 1 + T·noise)).  scale_arcsec: lattice spacing of
-    the first octave.  octaves: static int.  perm: the hash table drawn from the seed.
+    the first octave.  octaves: static int.  seed: uint32 array choosing the noise field.
     """
 
     amplitude: jnp.ndarray
     scale_arcsec: jnp.ndarray
     octaves: int = eqx.field(static=True)
-    perm: jnp.ndarray
+    seed: jnp.ndarray
 
     def validate(self, name="texture"):
         _check_range(f"{name}.amplitude", self.amplitude, 0, np.inf)

@@ -241,7 +241,7 @@ def test_stages_not_called_for_are_absent_from_the_computation():
 
 
 def _full_source():
-    perm = jnp.asarray(profiles.perlin_permutation(5))
+    perm = jnp.asarray(5, jnp.uint32)
     bulge = Sersic(f64([8.0, 5.0]), f64(0.03), f64(3.0), f64(0.9), f64(0.3), f64([0.25, 0.02]))
     disk = Disk(Sersic(f64([20.0, 25.0]), f64(0.08), f64(1.0), f64(0.8), f64(0.5), f64([0.25, 0.02])),
                 f64(0.4), SpiralArms(2, f64(0.6), f64(4.0), f64(1.0), f64(0.05), f64(0.3)),

@@ -42,6 +42,26 @@ def bilinear_interpolate(image, x_pix, y_pix):
             + v10 * (1 - fx) * fy + v11 * fx * fy)
 
 
+def bilinear_interpolate_channels(image, x_pix, y_pix):
+    """Bilinear interpolation of a channels-last image [ny, nx, C] at fractional pixel indices.
+
+    Returns [..., C]. Same conventions and edge clamping as `bilinear_interpolate`;
+    each of the four neighbours is read once for all channels.
+    """
+    ny, nx = image.shape[:2]
+    x = jnp.clip(x_pix, 0.0, nx - 1.0)
+    y = jnp.clip(y_pix, 0.0, ny - 1.0)
+    i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, max(nx - 2, 0))
+    j0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, max(ny - 2, 0))
+    i1 = jnp.minimum(i0 + 1, nx - 1)
+    j1 = jnp.minimum(j0 + 1, ny - 1)
+    fx = (x - i0)[..., None]
+    fy = (y - j0)[..., None]
+    get = lambda j, i: image.at[j, i].get(mode="promise_in_bounds")  # noqa: E731 (clipped above)
+    return (get(j0, i0) * (1 - fx) * (1 - fy) + get(j0, i1) * fx * (1 - fy)
+            + get(j1, i0) * (1 - fx) * fy + get(j1, i1) * fx * fy)
+
+
 class DeflectionGrid(eqx.Module):
     """A deflection field on a regular grid, in the θ frame of DESIGN.md.
 
