@@ -1,0 +1,44 @@
+"""Run every benchmark of issue 7 and write their results under benchmarks/results/.
+
+Usage: ``python benchmarks/run_all.py [--quick] [--only accuracy,lenstronomy,scene,scaling]``.
+Each script also runs on its own (see benchmarks/README.md). bench_fit.py (likelihood +
+gradient cost) belongs to the inference benchmarks and runs separately.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+JOBS = {
+    "accuracy": ["bench_accuracy.py"],
+    "lenstronomy": ["bench_lenstronomy.py"],
+    "scene": ["bench_scene.py"],
+    "scaling": ["bench_scaling.py"],
+}
+QUICK = {"accuracy": ["--quick"], "lenstronomy": ["--quick"], "scene": ["--settings", "as-is"],
+         "scaling": ["--quick"]}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--only", default=",".join(JOBS))
+    args = ap.parse_args(argv)
+    status = 0
+    for name in args.only.split(","):
+        cmd = [sys.executable, str(HERE / JOBS[name][0])] + (QUICK[name] if args.quick else [])
+        t = time.perf_counter()
+        print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
+        rc = subprocess.call(cmd)   # one process per benchmark: separate peak RSS and caches
+        print(f"== {name}: exit {rc} in {time.perf_counter() - t:.0f}s", flush=True)
+        status = status or rc
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())
