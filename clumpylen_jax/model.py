@@ -188,9 +188,13 @@ def _trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
         a1, a2 = f(jnp.asarray(theta1[s:s + chunk]), jnp.asarray(theta2[s:s + chunk]))
         out1[s:s + chunk] = theta1[s:s + chunk] - np.asarray(a1)
         out2[s:s + chunk] = theta2[s:s + chunk] - np.asarray(a2)
-    if not (np.all(np.isfinite(out1)) and np.all(np.isfinite(out2))):
-        raise ConfigError("lens", "non-finite deflection in the traced field",
-                          "a lens with finite deflections over the field")
+    bad = ~(np.isfinite(out1) & np.isfinite(out2))
+    if np.any(bad):
+        k = int(np.argmax(bad))
+        raise ConfigError("lens", f"non-finite deflection at θ = ({theta1[k]:.4f}, {theta2[k]:.4f})\" "
+                          f"({int(bad.sum())} rays)",
+                          "a lens with finite deflections over the traced field (NaN in the "
+                          "deflection maps there?)")
     return out1, out2
 
 
@@ -288,9 +292,44 @@ class SceneModel(eqx.Module):
         return jnp.pad(img / self.clump_grid.pixel_arcsec**2, ((1, 1), (1, 1), (0, 0)))
 
     def _band_chunk(self, nb: int) -> int:
-        """Bands per pass over the rays: as many as fit in ~1 GB of source-plane grid."""
+        """Bands per source-plane grid: as many as fit in ~0.5 GB."""
         npix = (self.clump_grid.nx + 2) * (self.clump_grid.ny + 2)
-        return int(max(1, min(nb, 1.0e9 // (8 * npix))))
+        return int(max(1, min(nb, 5.0e8 // (8 * npix))))
+
+    def _clump_values(self, source: Source, nb: int, block: int = 1 << 17):
+        """Clump light [B, M] of every traced pixel, from the source-plane grid.
+
+        Sequential over groups of bands (one grid in memory at a time) and over
+        blocks of pixels (bounded temporaries), so memory stays flat however
+        many bands and rays a scene has.
+        """
+        g = self.clump_grid
+        w = self.ray_weights
+        m = self.beta1.shape[0]
+        step = self._band_chunk(nb)
+        n_chunks = -(-nb // step)
+        flux = jnp.pad(source.clumps.flux, ((0, 0), (0, n_chunks * step - nb)))
+        flux = flux.reshape(flux.shape[0], n_chunks, step).transpose(1, 0, 2)
+        n_blocks = -(-m // block)
+        pad = n_blocks * block - m
+
+        def blocks(b, origin):
+            x = (b - origin) / g.pixel_arcsec + 1.0  # +1: the zero border
+            return jnp.pad(x, ((0, pad), (0, 0))).reshape(n_blocks, block, -1)
+
+        xs = blocks(self.beta1, g.x0_arcsec)
+        ys = blocks(self.beta2, g.y0_arcsec)
+
+        def one_chunk(f):
+            grid = self._clump_source_grid(source, f)
+
+            def one_block(xy):
+                return jnp.einsum("mrc,r->mc", bilinear_interpolate_channels(grid, *xy), w)
+
+            return jax.lax.map(one_block, (xs, ys)).reshape(n_blocks * block, step)[:m]
+
+        vals = jax.lax.map(one_chunk, flux)                      # [chunks, M, step]
+        return vals.transpose(0, 2, 1).reshape(n_chunks * step, m)[:nb]
 
     def traced_values(self, source: Source):
         """Flux [B, M] of every traced lens-plane pixel (counts/s)."""
@@ -317,18 +356,7 @@ class SceneModel(eqx.Module):
             if self.accuracy.source_mode == "analytic":
                 total = total + render.clumps_brightness(source.clumps, b1, b2) @ w
             else:
-                g = self.clump_grid
-                x = (b1 - g.x0_arcsec) / g.pixel_arcsec + 1.0  # +1: the zero border
-                y = (b2 - g.y0_arcsec) / g.pixel_arcsec + 1.0
-
-                step = self._band_chunk(nb)
-                parts = []
-                for lo in range(0, nb, step):
-                    flux = source.clumps.flux[:, lo:lo + step]
-                    grid = self._clump_source_grid(source, flux)
-                    vals = bilinear_interpolate_channels(grid, x, y)      # [M, rays, C]
-                    parts.append(jnp.einsum("mrc,r->cm", vals, w))
-                total = total + jnp.concatenate(parts, axis=0)
+                total = total + self._clump_values(source, nb)
         return total * self.hr_grid.pixel_arcsec**2
 
     def source_magnification_map(self):
@@ -397,9 +425,13 @@ class SceneModel(eqx.Module):
             img = img + flux[k] * unit
         cl = source.clumps
         if cl is not None and cl.count > 0:
-            groups = tuple(zip(lay.stamp_sides, self.stamp_index_unlensed[k]))
-            img = img + render.clumps_image(cl, g, groups, cl.flux[:, k:k + 1],
-                                            order=acc.source_order, core=acc.exact_core)[..., 0]
+            ckey = ("clumps", g)
+            if ckey not in cache:
+                # every band at once: bands on the same grid share the stamps
+                groups = tuple(zip(lay.stamp_sides, self.stamp_index_unlensed[k]))
+                cache[ckey] = render.clumps_image(cl, g, groups, cl.flux,
+                                                  order=acc.source_order, core=acc.exact_core)
+            img = img + cache[ckey][..., k]
         return img
 
     def _observe_subgrid(self, sub, k: int, lay: _BandLayout):

@@ -471,9 +471,15 @@ def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True
         shown = noisy if scene.output.noise else clean
         images = {b.filter: shown[k] - model.layouts[k].sky_counts_per_s
                   for k, b in enumerate(scene.bands)}
+        truth = {b.filter: clean[k] - model.layouts[k].sky_counts_per_s
+                 for k, b in enumerate(scene.bands)}
         for triple in scene.output.rgb:
             r, g, bb = _rgb_channels(images, grids, triple)
-            io.save_rgb_png(out / f"rgb_{'-'.join(triple)}.png", r, g, bb)
+            # stretch from the noiseless light, so that faint arcs are not set by the noise
+            intensity = sum(_rgb_channels(truth, grids, triple)) / 3.0
+            top = float(np.percentile(intensity, 99.9)) or float(intensity.max()) or 1.0
+            io.save_rgb_png(out / f"rgb_{'-'.join(triple)}.png", r, g, bb,
+                            stretch=top * 6.0 / math.sinh(6.0), Q=6.0, minimum=0.0)
 
     with prog.stage("high-resolution images"):
         hr_info = _write_hr(prep, out) if scene.output.hr else None
