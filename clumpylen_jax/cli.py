@@ -117,6 +117,67 @@ def _cmd_simulate(args) -> int:
     return EXIT_OK
 
 
+def _parse_images(items) -> dict:
+    """--image BAND=FILE arguments → {BAND: path}, checked before any computation."""
+    images = {}
+    for item in items or []:
+        band, sep, path = item.partition("=")
+        if not sep or not band.strip() or not path.strip():
+            raise ConfigError("--image", item, "BAND=FILE, e.g. F200W=bands/F200W.fits")
+        if not os.path.isfile(path):
+            raise ConfigError(f"--image {band}", path, "an existing FITS file")
+        images[band.strip().upper()] = path
+    if not images:
+        raise ConfigError("--image", None, "at least one BAND=FILE")
+    return images
+
+
+def _cmd_fit(args) -> int:
+    from . import scene as sc
+
+    s = _load(args.scene)
+    images = _parse_images(args.image)
+    s = sc.with_overrides(s, seed=args.seed, bands=list(images), noise=None)
+    require_method = ("map", "emcee", "nuts")
+    if args.method not in require_method:
+        raise ConfigError("--method", args.method, '"map", "emcee" or "nuts"')
+    from astropy.io import fits
+    import numpy as np
+
+    from .inference.run import run_fit
+    from .pipeline import prepare
+
+    data, variances = {}, {}
+    for band, path in images.items():
+        with fits.open(path) as hdul:
+            data[band] = np.asarray(hdul[0].data, float)
+            if "VARIANCE" in hdul:
+                variances[band] = np.asarray(hdul["VARIANCE"].data, float)
+    if variances and len(variances) != len(data):
+        raise ConfigError("--image", sorted(set(data) - set(variances)),
+                          "FITS files that all have a VARIANCE extension, or none")
+    prep = prepare(s)
+    shapes = {lay.name: lay.grid.shape for lay in prep.model.layouts}
+    for band, img in data.items():
+        if img.shape != shapes[band]:
+            raise ConfigError(f"--image {band}", f"shape {img.shape}",
+                              f"the scene's detector grid for {band}, shape {shapes[band]}")
+    order = [lay.name for lay in prep.model.layouts]
+    out = os.path.abspath(args.out)
+    from .inference.params import default_free
+    has_clumps = prep.source.clumps is not None and prep.source.clumps.count > 0
+    free = default_free(prep.source, host_fields=() if has_clumps else
+                        ("flux", "re_arcsec", "center_arcsec"))
+    run_fit(prep.model, prep.source, [data[b] for b in order],
+            [variances[b] for b in order] if variances else None, free=free,
+            method=args.method,
+            likelihood="gaussian" if variances else "gaussian_model_variance",
+            zeropoints_ab=prep.zeropoints, seed=s.seed, out_dir=out)
+    if not args.quiet:
+        print(f"wrote {out} (fit.ecsv, residuals{', chains.npz' if args.method != 'map' else ''})")
+    return EXIT_OK
+
+
 def _print_summary(summary, out: str) -> None:
     print(f"wrote {out}")
     if not isinstance(summary, dict):
@@ -206,6 +267,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quiet", "-q", action="store_true", help="no progress output")
     q.add_argument("--plots", action="store_true", help="also make the diagnostic figures")
     q.set_defaults(func=_cmd_simulate)
+
+    q = sub.add_parser("fit", help="fit the scene's clumps to observed or simulated images")
+    q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file "
+                   "(its catalogue and host are the starting point)")
+    q.add_argument("--image", action="append", metavar="BAND=FILE",
+                   help="an image to fit (counts/s; a VARIANCE extension is used if present)")
+    q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
+    q.add_argument("--method", default="map", help="map (default), emcee or nuts")
+    q.add_argument("--seed", type=int, help="override the scene's seed (clump catalogue)")
+    q.add_argument("--quiet", "-q", action="store_true", help="no output")
+    q.set_defaults(func=_cmd_fit)
 
     q = sub.add_parser("plot", help="make the figures of a finished run")
     q.add_argument("dir", metavar="DIR", help="output directory of `clumpylen simulate`")
