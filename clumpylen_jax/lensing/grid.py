@@ -17,36 +17,21 @@ from ..errors import ConfigError, require
 
 
 def bilinear_interpolate(image, x_pix, y_pix):
-    """Bilinear interpolation of ``image[y, x]`` at fractional pixel indices.
+    """Bilinear interpolation of a 2-D ``image[y, x]`` at fractional pixel indices.
 
     x_pix, y_pix: positions in pixel units, (0, 0) being the centre of
     ``image[0, 0]``. Positions outside the array are clamped to the edge.
     Differentiable in ``image`` and in the positions (piecewise linear).
     """
-    ny, nx = image.shape[-2:]
-    x = jnp.clip(x_pix, 0.0, nx - 1.0)
-    y = jnp.clip(y_pix, 0.0, ny - 1.0)
-    # floor of the clipped position, kept one below the last index so that
-    # x = nx - 1 interpolates with weight 1 on the last column.
-    i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, max(nx - 2, 0))
-    j0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, max(ny - 2, 0))
-    i1 = jnp.minimum(i0 + 1, nx - 1)
-    j1 = jnp.minimum(j0 + 1, ny - 1)
-    fx = x - i0
-    fy = y - j0
-    v00 = image[..., j0, i0]
-    v01 = image[..., j0, i1]
-    v10 = image[..., j1, i0]
-    v11 = image[..., j1, i1]
-    return (v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy)
-            + v10 * (1 - fx) * fy + v11 * fx * fy)
+    return bilinear_interpolate_channels(image[:, :, None], x_pix, y_pix)[..., 0]
 
 
 def bilinear_interpolate_channels(image, x_pix, y_pix):
     """Bilinear interpolation of a channels-last image [ny, nx, C] at fractional pixel indices.
 
-    Returns [..., C]. Same conventions and edge clamping as `bilinear_interpolate`;
-    each of the four neighbours is read once for all channels.
+    Returns [..., C]; (0, 0) is the centre of ``image[0, 0]``, positions outside
+    are clamped to the edge (the rule for rays outside a map). Each of the four
+    neighbours is read once for all channels.
     """
     ny, nx = image.shape[:2]
     x = jnp.clip(x_pix, 0.0, nx - 1.0)
