@@ -17,7 +17,6 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import clumpylen_jax  # noqa: F401

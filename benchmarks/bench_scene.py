@@ -24,7 +24,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import equinox as eqx  # noqa: E402
-import numpy as np  # noqa: E402
 
 import clumpylen_jax  # noqa: E402,F401
 from clumpylen_jax import pipeline, scene as scene_mod  # noqa: E402

@@ -131,7 +131,6 @@ def radec_to_theta(ra_deg, dec_deg, center_radec_deg):
 
 
 def _image_hdu(cls, data, wcs, header: dict | None, name: str | None):
-    from astropy.io import fits
 
     arr = np.asarray(data, dtype=np.float32)
     hdu = cls(data=arr) if name is None else cls(data=arr, name=name)

@@ -18,7 +18,6 @@ source is what is differentiated).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Optional
 
 import equinox as eqx
@@ -26,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import convolve, noise, profiles, render
+from . import convolve, noise, render
 from .errors import ConfigError, require
 from .lensing.grid import bilinear_interpolate, bilinear_interpolate_channels
 from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin, rebin_operators

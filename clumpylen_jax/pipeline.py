@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
-from . import profiles, render, scene as scene_mod
+from . import render, scene as scene_mod
 from .errors import ConfigError
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
 
@@ -210,7 +210,7 @@ def _sample_catalog(scene, bulge, disk, cosmology):
     masses = {"bulge": src.bulge.mass_msun if src.bulge is not None else None,
               "disk": src.disk.mass_msun if src.disk is not None else None}
     if cl is None:
-        return population._make_table({k: [] for k in ()}, {}) if False else None, masses
+        return None, masses
     scale = cosmo_mod.arcsec_per_pc(scene.z_source, cosmology)
     if cl.catalog is not None:
         table = population.read_clump_catalog(cl.catalog, arcsec_per_pc=scale,
@@ -368,17 +368,16 @@ def _jit_call(model, method: str, *args):
     return eqx.filter_jit(lambda m, *a: getattr(m, method)(*a))(model, *args)
 
 
-def _wcs_for(grid, scene, lensed: bool):
-    """TAN WCS of a grid: reference = lens centre (lensed) or the source centre (unlensed)."""
-    if lensed and scene.lens.center_radec_deg is not None:
-        ref = scene.lens.center_radec_deg
-        offset = (0.0, 0.0)
-    else:
-        ref = (scene.lens.center_radec_deg if scene.lens is not None and
-               scene.lens.center_radec_deg is not None else (0.0, 0.0))
-        offset = (0.0, 0.0)
-    return io.make_wcs(ref, grid.pixel_arcsec, grid.shape,
-                       (grid.x0_arcsec - offset[0], grid.y0_arcsec - offset[1]))
+def _wcs_for(grid, scene):
+    """TAN WCS of a grid (θ or β frame, arcsec) about the lens centre.
+
+    Unlensed grids use the same reference, so β offsets read as sky offsets from
+    it; a scene without a lens has no sky position and is placed at RA = Dec = 0.
+    """
+    lens = scene.lens
+    ref = lens.center_radec_deg if lens is not None and lens.center_radec_deg is not None \
+        else (0.0, 0.0)
+    return io.make_wcs(ref, grid.pixel_arcsec, grid.shape, (grid.x0_arcsec, grid.y0_arcsec))
 
 
 def _header(scene, band, zp, seed):
@@ -448,10 +447,10 @@ def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True
         with prog.stage(f"write {b.filter}"):
             lay = model.layouts[k]
             grids[b.filter] = lay.grid
-            wcs = _wcs_for(lay.grid, scene, lensed)
+            wcs = _wcs_for(lay.grid, scene)
             unl_wcs = None
             if unlensed[k] is not None:
-                unl_wcs = _wcs_for(unl_model.layouts[k].grid, scene, False)
+                unl_wcs = _wcs_for(unl_model.layouts[k].grid, scene)
             header = _header(scene, b, prep.zeropoints[b.filter], scene.seed)
             if b.exptime_s is None:
                 header["NOISEMOD"] = "none: no exposure time given"
@@ -548,11 +547,11 @@ def _write_hr(prep: Prepared, out: Path):
     for k, name in enumerate(names):
         hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
         io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),
-                            wcs=_wcs_for(sgrid, scene, False), header=hdr)
+                            wcs=_wcs_for(sgrid, scene), header=hdr)
         if lensed is not None:
             hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
             io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
-                                wcs=_wcs_for(model.hr_grid, scene, True), header=hdr)
+                                wcs=_wcs_for(model.hr_grid, scene), header=hdr)
     if len(names) >= 3:
         io.save_rgb_png(hr_dir / "rgb_unlensed.png", *[unl[k] for k in range(3)])
         if lensed is not None:

@@ -11,7 +11,6 @@ exactly at a profile centre, or q = 1, gives finite values and gradients.
 
 from __future__ import annotations
 
-import math
 
 import jax
 import jax.numpy as jnp

@@ -713,7 +713,7 @@ def _clumps(t, p, source_tables: dict, base_dir, band_names) -> Clumps:
             raise ConfigError(_join(p, "host"), host, f"a component present in [source] (no [source.{host}])")
         if "mass_msun" not in _table(source_tables[host], _join("source", host)):
             raise ConfigError(_join(p, "host"), host,
-                              f"a host with mass_msun (the clump mass budget), or clumps.catalog")
+                              "a host with mass_msun (the clump mass budget), or clumps.catalog")
     else:
         _check_catalog(catalog, _join(p, "catalog"), band_names)
     return Clumps(

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import clumpylen_jax  # noqa: F401
-from clumpylen_jax import convolve, noise, profiles
+from clumpylen_jax import convolve, noise
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.lensing.analytic import SIS
 from clumpylen_jax.lensing.grid import DeflectionGrid

@@ -1,7 +1,6 @@
 """notebooks/quickstart.ipynb runs top to bottom (nbclient when installed, else exec of its code cells)."""
 
 import json
-import os
 from pathlib import Path
 
 import pytest

@@ -1,6 +1,5 @@
 """Scene files: parsing, validation messages, defaults, TOML round trip, stages."""
 
-import copy
 import json
 import math
 import sys

@@ -262,7 +262,6 @@ def _fisher_grid(model, base, pos, fluxes, sizes, ratios, clump_n, clump_q, band
                     "clumps.flux": _row_mask(src.clumps.count, nb, last),
                     "clumps.re_arcsec": [last], "clumps.center_arcsec": [last]})
                 cov = np.asarray(safe_inverse(fisher_matrix(model, param)))
-                x = np.asarray(param.physical_of_state())
                 lab = {l: k for k, l in enumerate(param.labels)}
                 kf = lab[f"clumps.flux[{last},{band}]"]
                 kr = lab[f"clumps.re_arcsec[{last}]"]
