@@ -219,13 +219,13 @@ def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa
     ax, ay = u, v
     bx, by = jnp.roll(u, -1, axis=-1), jnp.roll(v, -1, axis=-1)
     dphi, degenerate = _edge_spans(ax, ay, bx, by)
-    # winding number in quarter turns: 4 inside, 2 on an edge, 1 on a corner, 0 outside
-    quarters = jnp.round(jnp.sum(dphi, axis=-1) / (jnp.pi / 2))
-    inside = quarters > 0
+    # The angle the pixel subtends at the centre: 2π inside, π on an edge, the
+    # (sheared) corner angle on a corner, and exactly 0 outside, where the signed
+    # spans cancel and Σ Δφ·P = −Σ Δφ·Q keeps the wings' relative precision.
+    touching = jnp.abs(jnp.sum(dphi, axis=-1)) > 1e-4
     lower = _edge_light(ax, ay, bx, by, dphi, degenerate, re_arcsec, n, b, t, w, upper=False)
     upper = _edge_light(ax, ay, bx, by, dphi, degenerate, re_arcsec, n, b, t, w, upper=True)
-    frac = jnp.where(inside, jnp.sum(lower, axis=-1),
-                     quarters * (jnp.pi / 2) - jnp.sum(upper, axis=-1)) / (2 * jnp.pi)
+    frac = jnp.where(touching, jnp.sum(lower, axis=-1), -jnp.sum(upper, axis=-1)) / (2 * jnp.pi)
     # rounding can leave −1e-24 where the true light is +1e-24: light is never negative
     return flux * jnp.maximum(frac, 0.0)
 

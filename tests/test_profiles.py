@@ -200,3 +200,19 @@ def test_texture_is_deterministic_smooth_and_flux_preserving():
     other = np.asarray(f(_disk(0.7, Texture(jnp.asarray(0.5), jnp.asarray(3.0), 3,
                                             jnp.asarray(43, jnp.uint32)))))
     assert not np.allclose(img, other)
+
+
+@pytest.mark.parametrize("q,pa", [(0.05, 1.0), (0.3, 0.2), (1.0, 0.0)])
+def test_centre_on_a_sheared_corner_keeps_the_light(q, pa):
+    """Regression (found by hypothesis): a corner's angle is not π/2 once the ellipse is
+    circularised, so the pixel sharing that corner must not be classified by quarter turns."""
+    xs = np.arange(-3, 3)
+    X, Y = np.meshgrid(xs, xs)
+    for n, re in ((0.2, 0.001), (4.0, 0.3)):
+        f = profiles.sersic_pixel_flux_exact(
+            jnp.asarray(X - 0.5), jnp.asarray(X + 0.5), jnp.asarray(Y - 0.5), jnp.asarray(Y + 0.5),
+            flux=1.0, re_arcsec=re, n=n, q=q, pa_rad=pa, center1=0.0, center2=0.0)
+        whole = profiles.sersic_pixel_flux_exact(
+            jnp.asarray(-3.5), jnp.asarray(2.5), jnp.asarray(-3.5), jnp.asarray(2.5), flux=1.0,
+            re_arcsec=re, n=n, q=q, pa_rad=pa, center1=0.0, center2=0.0, nodes=64)
+        assert abs(float(f.sum()) - float(whole)) < 1e-9
