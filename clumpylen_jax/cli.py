@@ -188,7 +188,9 @@ def _print_summary(summary, out: str) -> None:
             print(f"  {band}: total {value:.6g} counts/s" if isinstance(value, (int, float)) else f"  {band}: {value}")
     timings = summary.get("timings_s") or summary.get("timings") or {}
     if isinstance(timings, dict) and timings:
-        total = sum(v for v in timings.values() if isinstance(v, (int, float)))
+        total = timings.get("total")
+        if not isinstance(total, (int, float)):  # no overall timing: add the stages
+            total = sum(v for v in timings.values() if isinstance(v, (int, float)))
         print(f"  time: {total:.1f} s")
 
 
