@@ -138,9 +138,6 @@ def _cmd_fit(args) -> int:
     s = _load(args.scene)
     images = _parse_images(args.image)
     s = sc.with_overrides(s, seed=args.seed, bands=list(images), noise=None)
-    require_method = ("map", "emcee", "nuts")
-    if args.method not in require_method:
-        raise ConfigError("--method", args.method, '"map", "emcee" or "nuts"')
     from astropy.io import fits
     import numpy as np
 
@@ -276,7 +273,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--image", action="append", metavar="BAND=FILE",
                    help="an image to fit (counts/s; a VARIANCE extension is used if present)")
     q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
-    q.add_argument("--method", default="map", help="map (default), emcee or nuts")
+    q.add_argument("--method", default="map", choices=("map", "emcee", "nuts"),
+                   help="map (default), emcee or nuts")
     q.add_argument("--seed", type=int, help="override the scene's seed (clump catalogue)")
     q.add_argument("--quiet", "-q", action="store_true", help="no output")
     q.set_defaults(func=_cmd_fit)

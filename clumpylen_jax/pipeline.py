@@ -236,11 +236,7 @@ def _sample_catalog(scene, bulge, disk, cosmology):
     c = np.asarray(geo.center_arcsec, float)
     bbox = ((c[0] - radius, c[0] + radius), (c[1] - radius, c[1] + radius))
     rng = np.random.default_rng(scene.seed)
-    config = population.ClumpConfig(
-        cmf_slope=cl.cmf.slope, cmf_m_cut_msun=cl.cmf.m_cut_msun, cmf_delta=cl.cmf.delta,
-        cmf_gamma=cl.cmf.gamma, cmf_m_min_msun=cl.cmf.m_min_msun, cmf_m_max_msun=cl.cmf.m_max_msun,
-        size_scatter_ln=cl.size.scatter_ln, age_slope=cl.ages.slope, age_min_myr=cl.ages.min_myr,
-        age_max_myr=cl.ages.max_myr, q_range=tuple(cl.q_range), sersic_n=cl.sersic_n)
+    config = population.clump_config_from_scene(dataclasses.asdict(cl))
     table = population.sample_clumps(
         rng, host_mass_msun=float(host_cfg.mass_msun), mass_fraction=float(cl.mass_fraction),
         host_brightness=_fixed_shape_calls(fn),
