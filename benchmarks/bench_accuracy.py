@@ -252,14 +252,19 @@ def run_lensed(quick=False):
                           aperture_ref_flux=ref_ap.tolist(),
                           total_magnification=float(ref.sum() / (len(centers) * CLUMP_FLUX)))
         if quick:
-            configs = [(1, "grid", 0.00025, "float64"), (3, "grid", 0.00025, "float64"),
-                       (3, "analytic", None, "float64"), (3, "grid", 0.00025, "float32")]
+            configs = [(1, "grid", 0.00025, "float64"), (4, "grid", 0.00025, "float64"),
+                       (3, "analytic", None, "float64"), (4, "grid", 0.00025, "float32"),
+                       (4, "hybrid", 0.00025, "float64"), (4, "hybrid", 0.00025, "float32")]
         else:
             configs = [(ls, "grid", 0.00025, "float64") for ls in (1, 2, 3, 4, 6)]
             configs += [(ls, "analytic", None, "float64") for ls in (1, 2, 3, 4, 6)]
             configs += [(3, "grid", sp, "float64") for sp in (0.001, 0.0005, 0.000125)]
             configs += [(3, "grid", 0.00025, "float32"), (3, "analytic", None, "float32"),
                         (5, "grid", 0.000125, "float64")]
+            # hybrid: clumps off the caustic through the local linear lens map (no rays);
+            # the ray count then only matters for clumps near the caustic
+            configs += [(ls, "hybrid", 0.00025, "float64") for ls in (1, 4)]
+            configs += [(4, "hybrid", 0.00025, "float32")]
         for ls, mode, sp, dt in configs:
             dtype = jnp.float32 if dt == "float32" else jnp.float64
             acc = Accuracy(lens_subsampling=ls, source_mode=mode)

@@ -35,6 +35,8 @@ SETTINGS = {
     "float32": {"dtype": "float32"},
     "sub1": {"subsampling": 1},
     "analytic": {"source_mode": "analytic"},
+    "grid": {"source_mode": "grid"},
+    "hybrid": {"source_mode": "hybrid"},
     "src0.5mas": {"source_pixel_arcsec": 0.0005},
 }
 
@@ -68,7 +70,8 @@ def run_one(scene_name, setting, repeats=3):
                traced_pixels=None if model.traced_rows is None else int(model.traced_rows.size),
                rays=None if model.beta1 is None else int(model.beta1.size),
                source_grid=None if model.clump_grid is None else list(model.clump_grid.shape),
-               clump_stamp=model.clump_stamp,
+               grid_clumps=sum(int(i.size) for i in model.clump_stamp_index),
+               linearised_images=0 if model.lin_images is None else int(model.lin_images.count),
                lens_grid=None if model.hr_grid is None else list(model.hr_grid.shape),
                prepare_s=t_prep, first_render_s=t_first, cold_s=t_prep + t_first, warm_s=warm,
                xla_mb=None if mem is None else mem / 2**20,
@@ -96,6 +99,7 @@ def main(argv=None):
     C.write_json("scene", {"meta": meta, "rows": rows})
     cols = [("scene", "scene"), ("setting", "setting"), ("bands", "bands"), ("clumps", "clumps"),
             ("traced_pixels", "traced lens pixels"), ("rays", "rays"),
+            ("grid_clumps", "ray-traced clumps"), ("linearised_images", "linearised images"),
             ("prepare_s", "prepare s"), ("first_render_s", "first render s"),
             ("cold_s", "cold s"), ("warm_s", "warm s"), ("xla_mb", "XLA MiB"),
             ("model_mb", "model MiB"), ("peak_rss_mb", "peak RSS MiB"), ("error", "error")]

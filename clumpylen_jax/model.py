@@ -25,11 +25,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import convolve, noise, render
+from . import convolve, noise, render, tiles
 from .errors import ConfigError, require
-from .lensing.grid import bilinear_interpolate, bilinear_interpolate_channels
-from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin, rebin_operators
+from .lensing.linearised import (ClumpImages, lensed_clumps, linearisation_error,
+                                 pixel_footprints, pixels_near, point_images)
+from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin_sparse, sparse_rebin_operators
 from .source import Source
+
+
+SOURCE_MODES = ("hybrid", "grid", "analytic")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,8 +44,14 @@ class Accuracy:
     source_order: Gauss–Legendre order per pixel when a profile is integrated on a grid.
     exact_core: side (pixels) of the block around each Sérsic centre integrated exactly.
     psf_oversampling: odd factor of the grid, finer than the detector, on which the PSF acts.
-    source_mode: "grid" (clumps on a source-plane grid, bilinear at each ray) or "analytic"
-        (every clump evaluated at every ray: the converged reference, cost rays × clumps).
+    source_mode: "hybrid" (each clump image far enough from a caustic is the clump seen
+        through the local linear lens map, integrated over detector pixels with no rays;
+        the others as in "grid"), "grid" (clumps on a source-plane grid, bilinear at each
+        ray) or "analytic" (every clump evaluated at every ray: the converged reference,
+        cost rays × clumps).
+    linearise_tolerance: "hybrid" linearises a clump when, on each of its images, the
+        linear map misplaces the image of its 99 %-light rim by less than this fraction of
+        the finest detector pixel (and no caustic crosses its stamp); 0 traces every clump.
     stamp_flux_fraction: light fraction of the largest clump its stamp must hold.
     source_flux_fraction: light fraction of each host component inside the traced region.
     gaussian_noise_above: expected counts above which noise is drawn as a Gaussian (None: never).
@@ -54,6 +64,7 @@ class Accuracy:
     exact_core: int = 5
     psf_oversampling: int = 5
     source_mode: str = "grid"
+    linearise_tolerance: float = 0.05
     stamp_flux_fraction: float = 0.9999
     source_flux_fraction: float = 0.99
     gaussian_noise_above: Optional[float] = 1.0e4
@@ -68,8 +79,10 @@ class Accuracy:
                 self.psf_oversampling, "an odd integer (detector centres on sub-pixel centres)")
         require(isinstance(self.exact_core, (int, np.integer)) and 0 <= self.exact_core <= 31,
                 f"{name}.exact_core", self.exact_core, "an integer in [0, 31]")
-        require(self.source_mode in ("grid", "analytic"), f"{name}.source_mode",
-                self.source_mode, '"grid" or "analytic"')
+        require(self.source_mode in SOURCE_MODES, f"{name}.source_mode",
+                self.source_mode, " or ".join(f'"{m}"' for m in SOURCE_MODES))
+        require(np.isfinite(self.linearise_tolerance) and self.linearise_tolerance >= 0,
+                f"{name}.linearise_tolerance", self.linearise_tolerance, "a fraction ≥ 0")
         for key in ("stamp_flux_fraction", "source_flux_fraction"):
             v = getattr(self, key)
             require(0.5 <= v < 1, f"{name}.{key}", v, "a fraction in [0.5, 1)")
@@ -216,14 +229,11 @@ def traced_pixels(corner_b1, corner_b2, center, radius):
     centre is below radius + the largest corner distance from that mean, so
     that thin, highly magnified images are not missed.
     """
-    quads = [(slice(0, -1), slice(0, -1)), (slice(0, -1), slice(1, None)),
-             (slice(1, None), slice(0, -1)), (slice(1, None), slice(1, None))]
-    m1 = sum(corner_b1[q] for q in quads) / 4
-    m2 = sum(corner_b2[q] for q in quads) / 4
-    reach = np.max([np.hypot(corner_b1[q] - m1, corner_b2[q] - m2) for q in quads], axis=0)
-    dist = np.hypot(m1 - center[0], m2 - center[1])
-    rows, cols = np.nonzero(dist < radius + 1.01 * reach)
-    return rows, cols
+    ny, nx = corner_b1.shape[0] - 1, corner_b1.shape[1] - 1
+    rows, cols = (a.ravel() for a in np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij"))
+    m1, m2, reach = pixel_footprints(corner_b1, corner_b2, rows, cols)
+    keep = np.hypot(m1 - center[0], m2 - center[1]) < radius + 1.01 * reach
+    return rows[keep], cols[keep]
 
 
 def rays_in_pixels(corner_b1, corner_b2, rows, cols, offsets):
@@ -268,6 +278,8 @@ class SceneModel(eqx.Module):
     clump_grid: Optional[Grid] = eqx.field(static=True)
     clump_stamp_sides: tuple = eqx.field(static=True)
     clump_stamp_index: tuple
+    clump_tiles: Optional[jnp.ndarray]       # slot of each tile of the bordered source grid
+    clump_tile_layout: Optional[tiles.TileLayout] = eqx.field(static=True)
     psf_fts: tuple
     rebin_ops: tuple
     traced_rows: Optional[jnp.ndarray]
@@ -278,6 +290,17 @@ class SceneModel(eqx.Module):
     beta1_center: Optional[jnp.ndarray]
     beta2_center: Optional[jnp.ndarray]
     stamp_index_unlensed: tuple = ()
+    # rays exist for the traced pixels (ray_rows, ray_cols) (all of them, or those reaching
+    # a ray-traced clump), which lie in the window rows r0:r1, cols c0:c1 of hr_grid;
+    # linearised clump images and their stamp groups on each band's sub-grid and on hr_grid
+    ray_rows: Optional[jnp.ndarray] = None
+    ray_cols: Optional[jnp.ndarray] = None
+    ray_window: tuple = eqx.field(static=True, default=(0, 0, 0, 0))
+    lin_images: Optional[ClumpImages] = None
+    lin_stamp_sides: tuple = eqx.field(static=True, default=())
+    lin_stamp_index: tuple = ()
+    lin_hr_sides: tuple = eqx.field(static=True, default=())
+    lin_hr_index: tuple = ()
 
     @property
     def band_names(self):
@@ -288,16 +311,26 @@ class SceneModel(eqx.Module):
     def _clump_groups(self):
         return tuple(zip(self.clump_stamp_sides, self.clump_stamp_index))
 
-    def _clump_source_grid(self, source: Source, flux):
-        """Clump surface brightness [ny, nx, C] of C bands on the source-plane grid, zero border."""
-        img = render.clumps_image(source.clumps, self.clump_grid, self._clump_groups(), flux,
-                                  order=self.accuracy.source_order, core=self.accuracy.exact_core)
-        return jnp.pad(img / self.clump_grid.pixel_arcsec**2, ((1, 1), (1, 1), (0, 0)))
+    def _clump_tiles(self, stamps, flux):
+        """Clump surface brightness [size, C] of C bands in the source grid's stored tiles.
+
+        The grid has a zero border of one pixel (rays beyond it read zero), hence +1.
+        """
+        store = None
+        for st, i0, j0, idx in stamps:
+            store = tiles.scatter_stamps(self.clump_tile_layout, self.clump_tiles, st, i0 + 1,
+                                         j0 + 1, flux[idx], store)
+        return store / self.clump_grid.pixel_arcsec**2
+
+    def _ray_positions(self):
+        """Rays' fractional pixel indices in the bordered source grid: (x, y), [P, R] each."""
+        g = self.clump_grid
+        return ((self.beta1 - g.x0_arcsec) / g.pixel_arcsec + 1.0,
+                (self.beta2 - g.y0_arcsec) / g.pixel_arcsec + 1.0)
 
     def _band_chunk(self, nb: int) -> int:
         """Bands per source-plane grid: as many as fit in ~0.5 GB."""
-        npix = (self.clump_grid.nx + 2) * (self.clump_grid.ny + 2)
-        return int(max(1, min(nb, 5.0e8 // (8 * npix))))
+        return int(max(1, min(nb, 5.0e8 // (8 * self.clump_tile_layout.size))))
 
     def _clump_values(self, source: Source, nb: int, block: int = 1 << 17):
         """Clump light [B, M] of every traced pixel, from the source-plane grid.
@@ -316,93 +349,143 @@ class SceneModel(eqx.Module):
         n_blocks = -(-m // block)
         pad = n_blocks * block - m
 
-        def blocks(b, origin):
-            x = (b - origin) / g.pixel_arcsec + 1.0  # +1: the zero border
+        def blocks(x):
             return jnp.pad(x, ((0, pad), (0, 0))).reshape(n_blocks, block, -1)
 
-        xs = blocks(self.beta1, g.x0_arcsec)
-        ys = blocks(self.beta2, g.y0_arcsec)
+        xs, ys = (blocks(x) for x in self._ray_positions())
+
+        # the stamps hold unit flux: made once, scattered with each group of bands' fluxes
+        stamps = render.grouped_stamps(source.clumps, g, self._clump_groups(),
+                                       order=self.accuracy.source_order,
+                                       core=self.accuracy.exact_core)
 
         def one_chunk(f):
-            grid = self._clump_source_grid(source, f)
+            store = self._clump_tiles(stamps, f)
 
             def one_block(xy):
-                return jnp.einsum("mrc,r->mc", bilinear_interpolate_channels(grid, *xy), w)
+                vals = tiles.bilinear(self.clump_tile_layout, self.clump_tiles, store, *xy)
+                return jnp.einsum("mrc,r->mc", vals, w)
 
             return jax.lax.map(one_block, (xs, ys)).reshape(n_blocks * block, step)[:m]
 
         vals = jax.lax.map(one_chunk, flux)                      # [chunks, M, step]
         return vals.transpose(0, 2, 1).reshape(n_chunks * step, m)[:nb]
 
-    def traced_values(self, source: Source):
-        """Flux [B, M] of every traced lens-plane pixel (counts/s)."""
-        b1, b2 = self.beta1, self.beta2
-        w = self.ray_weights
-        nb = _n_bands(source)
-        dtype = b1.dtype
-        total = jnp.zeros((nb, b1.shape[0]), dtype)
+    def _host_values(self, source: Source):
+        """Host light at every traced pixel: (units [M, C] per unit flux, fluxes [C, B]).
+
+        One column per host component: each is achromatic, so every band is a linear
+        combination of C ≤ 2 lens-plane images.
+        """
+        dtype = self.beta1_center.dtype
         # host components vary slowly across a lens-plane pixel's footprint: one ray per
         # pixel (its centre) unless host_subsampling asks for all of them
         if self.accuracy.host_subsampling:
-            h1, h2, hw = b1, b2, w
+            h1, h2, hw = self.beta1, self.beta2, self.ray_weights
         else:
             h1, h2, hw = self.beta1_center[:, None], self.beta2_center[:, None], jnp.ones(1, dtype)
+        units, fluxes = [], []
         if source.bulge is not None:
             s = source.bulge
-            u = render.sersic_unit_brightness(h1, h2, **render._sersic_kw(s)) @ hw
-            total = total + s.flux[:, None] * u[None, :]
+            units.append(render.sersic_unit_brightness(h1, h2, **render._sersic_kw(s)) @ hw)
+            fluxes.append(s.flux)
         if source.disk is not None:
-            d = source.disk
-            u = render.disk_unit_brightness(d, h1, h2) @ hw
-            total = total + d.sersic.flux[:, None] * u[None, :]
-        if source.clumps is not None and source.clumps.count > 0:
-            if self.accuracy.source_mode == "analytic":
-                total = total + render.clumps_brightness(source.clumps, b1, b2) @ w
-            else:
-                total = total + self._clump_values(source, nb)
-        return total * self.hr_grid.pixel_arcsec**2
+            units.append(render.disk_unit_brightness(source.disk, h1, h2) @ hw)
+            fluxes.append(source.disk.sersic.flux)
+        if not units:
+            return None, None
+        area = self.hr_grid.pixel_arcsec**2
+        return jnp.stack(units, -1) * area, jnp.stack(fluxes, 0)
+
+    def _clump_ray_values(self, source: Source):
+        """Ray-traced clump flux [B, P] of the pixels with rays (counts/s), or None."""
+        if source.clumps is None or source.clumps.count == 0:
+            return None
+        if self.accuracy.source_mode == "analytic":
+            vals = render.clumps_brightness(source.clumps, self.beta1, self.beta2) @ self.ray_weights
+        elif self.clump_grid is not None:
+            vals = self._clump_values(source, _n_bands(source))
+        else:
+            return None
+        return vals * self.hr_grid.pixel_arcsec**2
+
+    def _clump_window(self, source: Source):
+        """Ray-traced clumps on the window of hr_grid holding the rays: [h, w, B], or None."""
+        vals = self._clump_ray_values(source)
+        if vals is None:
+            return None
+        r0, r1, c0, c1 = self.ray_window
+        img = jnp.zeros((r1 - r0, c1 - c0, vals.shape[0]), vals.dtype)
+        return img.at[self.ray_rows - r0, self.ray_cols - c0].set(vals.T)
+
+    def _lensed_clump_image(self, source: Source, grid: Grid, sides, index):
+        """Linearised clump images on `grid`, every band: [ny, nx, B] counts/s per pixel."""
+        lin = lensed_clumps(source.clumps, self.lin_images)
+        return render.clumps_image(lin, grid, tuple(zip(sides, index)), lin.flux,
+                                   order=self.accuracy.source_order, core=self.accuracy.exact_core,
+                                   strip=True)
+
+    def _has_linearised(self, source: Source):
+        return (self.lin_images is not None and self.lin_images.count > 0
+                and source.clumps is not None)
 
     def source_magnification_map(self):
-        """Lens-plane area landing on each clump-grid pixel / that pixel's area (grid mode).
+        """Lens-plane area landing on each stored source-grid pixel / that pixel's area.
 
-        The adjoint of the ray-tracing interpolation applied to ones: Σ over a
-        clump's stamp of this map × its light is exactly the magnification the
-        model gives that clump within the field.
+        The adjoint of the ray-tracing interpolation applied to ones, in the tiled
+        storage ([size]; pixels no ray reads hold 0): Σ over a clump's stamp of this
+        map × its light is exactly the magnification the model gives that clump.
         """
-        g = self.clump_grid
-        dtype = self.beta1.dtype
-        x = (self.beta1 - g.x0_arcsec) / g.pixel_arcsec + 1.0
-        y = (self.beta2 - g.y0_arcsec) / g.pixel_arcsec + 1.0
+        lay, slots = self.clump_tile_layout, self.clump_tiles
+        x, y = self._ray_positions()
 
-        def lensed_total(img):
-            return jnp.sum(bilinear_interpolate(img, x, y) @ self.ray_weights)
+        def lensed_total(store):
+            return jnp.sum(tiles.bilinear(lay, slots, store[:, None], x, y)[..., 0]
+                           @ self.ray_weights)
 
-        zeros = jnp.zeros((g.ny + 2, g.nx + 2), dtype)
-        grad = jax.grad(lensed_total)(zeros)[1:-1, 1:-1]
-        return grad * (self.hr_grid.pixel_arcsec / g.pixel_arcsec) ** 2
+        zeros = jnp.zeros(lay.size, self.beta1.dtype)
+        grad = jax.grad(lensed_total)(zeros)
+        return grad * (self.hr_grid.pixel_arcsec / self.clump_grid.pixel_arcsec) ** 2
 
     def clump_magnifications(self, source: Source):
         """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
         cl = source.clumps
+        out = jnp.zeros(cl.count, cl.re_arcsec.dtype)
+        if self._has_linearised(source):
+            # a linearised clump: Σ |μ| over its images (each wholly inside the field)
+            A = self.lin_images.jacobian
+            det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+            out = out.at[self.lin_images.clump_index].add(1.0 / jnp.abs(det).astype(out.dtype))
+        if self.clump_grid is None:
+            return out
         mu = self.source_magnification_map()
-        out = jnp.zeros(cl.count, mu.dtype)
-        for side, idx in self._clump_groups():
-            sub = jax.tree_util.tree_map(lambda a: a[idx], cl)
-            stamps, i0, j0 = render.clump_stamps(sub, self.clump_grid, side,
-                                                 order=self.accuracy.source_order,
-                                                 core=self.accuracy.exact_core)
-            k = jnp.arange(side)
-            rows = jnp.clip(j0[:, None, None] + k[None, :, None], 0, self.clump_grid.ny - 1)
-            cols = jnp.clip(i0[:, None, None] + k[None, None, :], 0, self.clump_grid.nx - 1)
-            mags = jnp.sum(stamps * mu[rows, cols], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
+        for stamps, i0, j0, idx in render.grouped_stamps(cl, self.clump_grid, self._clump_groups(),
+                                                         order=self.accuracy.source_order,
+                                                         core=self.accuracy.exact_core):
+            k = jnp.arange(stamps.shape[1])
+            rows = j0[:, None, None] + k[None, :, None] + 1      # +1: the grid's border
+            cols = i0[:, None, None] + k[None, None, :] + 1
+            at = tiles.flat_index(self.clump_tile_layout, self.clump_tiles, rows, cols)
+            mags = jnp.sum(stamps * mu[at], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
             out = out.at[idx].set(mags)
         return out
 
     def lens_plane(self, source: Source):
         """High-resolution lens-plane images [B, ny, nx], counts/s per lens-plane pixel."""
-        vals = self.traced_values(source)
-        img = jnp.zeros((vals.shape[0],) + self.hr_grid.shape, vals.dtype)
-        return img.at[:, self.traced_rows, self.traced_cols].set(vals)
+        nb = _n_bands(source)
+        dtype = self.beta1_center.dtype
+        img = jnp.zeros(self.hr_grid.shape + (nb,), dtype)
+        units, fluxes = self._host_values(source)
+        if units is not None:
+            img = img.at[self.traced_rows, self.traced_cols].set(units @ fluxes)
+        win = self._clump_window(source)
+        if win is not None:
+            r0, r1, c0, c1 = self.ray_window
+            img = img.at[r0:r1, c0:c1].add(win)
+        if self._has_linearised(source):
+            img = img + self._lensed_clump_image(source, self.hr_grid, self.lin_hr_sides,
+                                                 self.lin_hr_index)
+        return jnp.moveaxis(img, -1, 0)
 
     # -- detector ----------------------------------------------------------------
 
@@ -452,10 +535,38 @@ class SceneModel(eqx.Module):
         """PSF-convolved source light per band (tuple of [ny, nx], counts/s per pixel, no sky)."""
         out = []
         if self.lensed:
-            hr = self.lens_plane(source)
+            units, fluxes = self._host_values(source)
+            hosts = None
+            if units is not None:
+                hosts = jnp.zeros(self.hr_grid.shape + (units.shape[1],), units.dtype)
+                hosts = hosts.at[self.traced_rows, self.traced_cols].set(units)
+            win = self._clump_window(source)
+            lin = self._has_linearised(source)
+            r0, r1, c0, c1 = self.ray_window
+            cache = {}
             for k, lay in enumerate(self.layouts):
-                wy, wx = self.rebin_ops[k]
-                out.append(self._observe_subgrid(rebin(hr[k], wy, wx), k, lay))
+                g = lay.grid.subdivided(lay.oversampling)
+                if g not in cache:   # bands on the same sub-grid share every rebinning
+                    (ty, wy), (tx, wx) = ops = self.rebin_ops[k]
+                    parts = {}
+                    if hosts is not None:
+                        parts["hosts"] = rebin_sparse(hosts, ops, g.shape)
+                    if win is not None:
+                        parts["clumps"] = rebin_sparse(
+                            win, ((ty[:, r0:r1], wy[:, r0:r1]), (tx[:, c0:c1], wx[:, c0:c1])),
+                            g.shape)
+                    if lin:
+                        parts["linearised"] = self._lensed_clump_image(
+                            source, g, self.lin_stamp_sides[k], self.lin_stamp_index[k])
+                    cache[g] = parts
+                parts = cache[g]
+                sub = jnp.zeros(g.shape, self.beta1_center.dtype)
+                if "hosts" in parts:
+                    sub = sub + parts["hosts"] @ fluxes[:, k]
+                for name in ("clumps", "linearised"):
+                    if name in parts:
+                        sub = sub + parts[name][..., k]
+                out.append(self._observe_subgrid(sub, k, lay))
         else:
             cache = {}
             for k, lay in enumerate(self.layouts):
@@ -553,8 +664,9 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                        convolve.kernel_rfft(kernel, grid.subdivided(s).shape, dtype))
 
     if lens is None:
-        return SceneModel(tuple(layouts), accuracy, False, None, None, (), (), tuple(psf_fts), (),
-                          None, None, None, None, None, None, None, tuple(unlensed_index))
+        return SceneModel(tuple(layouts), accuracy, False, None, None, (), (), None, None,
+                          tuple(psf_fts), (), None, None, None, None, None, None, None,
+                          tuple(unlensed_index))
 
     # lens plane: one high-resolution grid over the union of the band fields
     x_lo = min(l.grid.x_range[0] for l in layouts)
@@ -568,27 +680,128 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
         raise ConfigError("render.field_arcsec", field_arcsec,
                           "a lens-plane field where the source lands (no pixel of it maps "
                           f"within {radius:.3g}\" of the source centre {tuple(center)})")
+    n_clumps = source.clumps.count if has_clumps else 0
+    traced_clumps = np.arange(n_clumps)
+    lin = dict(lin_images=None)
+    if has_clumps and accuracy.source_mode == "hybrid" and accuracy.linearise_tolerance > 0:
+        tol = accuracy.linearise_tolerance * min(l.grid.pixel_arcsec for l in layouts)
+        lin_mask, images = _linearise_clumps(source.clumps, corner_b1, corner_b2, hr, rows, cols,
+                                             accuracy, tol, dtype)
+        traced_clumps = np.nonzero(~lin_mask)[0]
+        lin = _linearised_layout(source, images, layouts, hr, accuracy)
+    # rays: every traced pixel when every ray needs a value; otherwise only the pixels
+    # whose footprint reaches a ray-traced clump's stamp
+    ray_pixels = np.arange(rows.size)
+    if accuracy.source_mode != "analytic" and not accuracy.host_subsampling:
+        cl = source.clumps
+        r_stamp = (_radius_enclosing(accuracy.stamp_flux_fraction,
+                                     np.asarray(cl.re_arcsec, float)[traced_clumps],
+                                     np.asarray(cl.n, float)[traced_clumps])
+                   if traced_clumps.size else np.zeros(0))
+        _, pix = pixels_near(corner_b1, corner_b2, rows, cols,
+                             np.asarray(cl.center_arcsec, float)[traced_clumps]
+                             if traced_clumps.size else np.zeros((0, 2)), r_stamp)
+        ray_pixels = np.unique(pix)
+    sel = ray_pixels
+    ray_window = ((int(rows[sel].min()), int(rows[sel].max()) + 1,
+                   int(cols[sel].min()), int(cols[sel].max()) + 1) if sel.size else (0, 0, 0, 0))
     offs, wts = gauss_legendre_offsets(accuracy.lens_subsampling)
     ox, oy = np.meshgrid(offs, offs)
     wxy = np.outer(wts, wts).ravel()
-    b1, b2 = rays_in_pixels(corner_b1, corner_b2, rows, cols, (ox.ravel(), oy.ravel()))
+    b1, b2 = rays_in_pixels(corner_b1, corner_b2, rows[sel], cols[sel], (ox.ravel(), oy.ravel()))
     c1, c2 = rays_in_pixels(corner_b1, corner_b2, rows, cols, (np.zeros(1), np.zeros(1)))
     del corner_b1, corner_b2
-    rebin_ops = tuple(tuple(jnp.asarray(w, dtype) for w in
-                            rebin_operators(hr, l.grid.subdivided(l.oversampling)))
+    rebin_ops = tuple(tuple((jnp.asarray(t), jnp.asarray(w, dtype)) for t, w in
+                            sparse_rebin_operators(hr, l.grid.subdivided(l.oversampling)))
                       for l in layouts)
 
     clump_grid, groups = None, []
-    if has_clumps and accuracy.source_mode == "grid":
-        groups = _clump_groups_for(source, source_pixel_arcsec, accuracy.stamp_flux_fraction)
-        cc = np.asarray(source.clumps.center_arcsec, float)
+    if traced_clumps.size and accuracy.source_mode in ("grid", "hybrid"):
+        cl = source.clumps
+        sub = jax.tree_util.tree_map(lambda a: np.asarray(a)[traced_clumps], cl)
+        groups = [(side, traced_clumps[idx])
+                  for side, idx in render.stamp_groups(sub.re_arcsec, sub.n, source_pixel_arcsec,
+                                                       flux_fraction=accuracy.stamp_flux_fraction)]
+        cc = np.asarray(cl.center_arcsec, float)[traced_clumps]
         half = (max(side for side, _ in groups) / 2 + 2) * source_pixel_arcsec
         clump_grid = Grid.covering((cc[:, 0].min() - half, cc[:, 0].max() + half),
                                    (cc[:, 1].min() - half, cc[:, 1].max() + half),
                                    source_pixel_arcsec)
+    tile_layout, slot_map = None, None
+    if clump_grid is not None:
+        # store only the tiles of the bordered grid that some ray reads
+        p = clump_grid.pixel_arcsec
+        tile_layout, slot_map = tiles.active_tiles((b1 - clump_grid.x0_arcsec) / p + 1.0,
+                                                   (b2 - clump_grid.y0_arcsec) / p + 1.0,
+                                                   (clump_grid.ny + 2, clump_grid.nx + 2))
+        slot_map = jnp.asarray(slot_map)
     return SceneModel(tuple(layouts), accuracy, True, hr, clump_grid,
                       tuple(side for side, _ in groups), tuple(jnp.asarray(i) for _, i in groups),
-                      tuple(psf_fts),
+                      slot_map, tile_layout, tuple(psf_fts),
                       rebin_ops, jnp.asarray(rows), jnp.asarray(cols),
                       jnp.asarray(b1, dtype), jnp.asarray(b2, dtype), jnp.asarray(wxy, dtype),
-                      jnp.asarray(c1[:, 0], dtype), jnp.asarray(c2[:, 0], dtype))
+                      jnp.asarray(c1[:, 0], dtype), jnp.asarray(c2[:, 0], dtype),
+                      ray_rows=jnp.asarray(rows[sel]), ray_cols=jnp.asarray(cols[sel]),
+                      ray_window=ray_window, **lin)
+
+
+def _linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, accuracy: Accuracy,
+                      tolerance_arcsec: float, dtype):
+    """Which clumps the local linear lens map renders well, and their images.
+
+    A clump is linearised when every image of its centre has a linearisation error
+    (`linearisation_error` on its 99 %-light circle) below `tolerance_arcsec` and 8 points
+    on the rim of its stamp have as many images as the centre (no caustic crosses it).
+    Returns (mask [N], ClumpImages of the linearised clumps).
+    """
+    cc = np.asarray(clumps.center_arcsec, float)
+    re = np.asarray(clumps.re_arcsec, float)
+    n = np.asarray(clumps.n, float)
+    N = re.size
+    r99 = _radius_enclosing(0.99, re, n)
+    r_stamp = _radius_enclosing(accuracy.stamp_flux_fraction, re, n)
+    ang = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+    rim = cc[:, None, :] + r_stamp[:, None, None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+    pidx, theta, A = point_images(corner_b1, corner_b2, hr, rows, cols,
+                                  np.concatenate([cc, rim.reshape(-1, 2)]))
+    counts = np.bincount(pidx, minlength=9 * N)
+    ok = np.all(counts[N:].reshape(N, 8) == counts[:N, None], axis=1)
+    centre = pidx < N
+    ci, theta, A = pidx[centre], theta[centre], A[centre]
+    err = linearisation_error(corner_b1, corner_b2, hr, theta, A, cc[ci], r99[ci])
+    bad = np.zeros(N, bool)
+    np.logical_or.at(bad, ci, ~(err < tolerance_arcsec))
+    ok &= ~bad
+    keep = ok[ci]
+    images = ClumpImages(clump_index=jnp.asarray(ci[keep]),
+                         theta0=jnp.asarray(theta[keep], dtype),
+                         beta0=jnp.asarray(cc[ci[keep]], dtype),
+                         jacobian=jnp.asarray(A[keep], dtype))
+    return ok, images
+
+
+def _linearised_layout(source: Source, images: ClumpImages, layouts, hr: Grid, accuracy):
+    """SceneModel fields for linearised clump images: stamp groups per band sub-grid and on hr."""
+    if images.count == 0:
+        return dict(lin_images=None)
+    lensed = jax.jit(lensed_clumps)(jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64),
+                                                  source.clumps),
+                           jax.tree_util.tree_map(lambda a: jnp.asarray(a), images))
+    re = np.asarray(lensed.re_arcsec)
+    n = np.asarray(lensed.n)
+
+    def groups(pixel):
+        g = render.stamp_groups(re, n, pixel, flux_fraction=accuracy.stamp_flux_fraction)
+        return tuple(s for s, _ in g), tuple(jnp.asarray(i) for _, i in g)
+
+    per_pixel = {}
+    sides, index = [], []
+    for l in layouts:
+        pix = l.grid.pixel_arcsec / l.oversampling
+        if pix not in per_pixel:
+            per_pixel[pix] = groups(pix)
+        sides.append(per_pixel[pix][0])
+        index.append(per_pixel[pix][1])
+    hr_sides, hr_index = groups(hr.pixel_arcsec)
+    return dict(lin_images=images, lin_stamp_sides=tuple(sides), lin_stamp_index=tuple(index),
+                lin_hr_sides=hr_sides, lin_hr_index=hr_index)

@@ -88,7 +88,8 @@ def _accuracy(scene) -> model_mod.Accuracy:
     a = scene.render.accuracy
     base = model_mod.ACCURACY_PRESETS[a.preset]
     return dataclasses.replace(base, lens_subsampling=a.subsampling,
-                               psf_oversampling=a.psf_oversampling, source_mode=a.source_mode)
+                               psf_oversampling=a.psf_oversampling, source_mode=a.source_mode,
+                               linearise_tolerance=a.linearise_tolerance)
 
 
 def build_lens(scene, cosmology=None):

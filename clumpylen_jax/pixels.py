@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -108,6 +109,49 @@ def rebin(image, wy, wx):
     wy = jnp.asarray(wy, image.dtype)
     wx = jnp.asarray(wx, image.dtype)
     return jnp.einsum("ji,...ik,lk->...jl", wy, image, wx)
+
+
+def sparse_overlap(src_edges, dst_edges):
+    """The overlap operator of `overlap_matrix` by source pixel: (targets [T, n], weights [T, n]).
+
+    Source pixel i puts weights[t, i] of its flux into destination pixel targets[t, i];
+    T is the most destination pixels any source pixel touches (2 when destination
+    pixels are the larger). Targets are non-decreasing along i for every t (zero-weight
+    padding included), so that sums over them can use sorted segment sums.
+    """
+    w = overlap_matrix(src_edges, dst_edges)                 # [m, n]
+    nz = w > 0
+    count = nz.sum(axis=0)
+    T = max(int(count.max()), 1)
+    first = np.where(count > 0, np.argmax(nz, axis=0), 0)
+    targets = np.minimum(first[None, :] + np.arange(T)[:, None], w.shape[0] - 1)
+    weights = np.take_along_axis(w, targets, axis=0) * (np.arange(T)[:, None] < count[None, :])
+    targets = np.maximum.accumulate(targets, axis=1)
+    return targets.astype(np.int32), weights
+
+
+def sparse_rebin_operators(src: Grid, dst: Grid):
+    """((ty, wy), (tx, wx)): `sparse_overlap` along y and x, for `rebin_sparse`."""
+    return (sparse_overlap(src.y_edges(), dst.y_edges()),
+            sparse_overlap(src.x_edges(), dst.x_edges()))
+
+
+def _rebin_axis0(image, targets, weights, size):
+    out = 0.0
+    for t in range(targets.shape[0]):
+        w = weights[t].reshape((-1,) + (1,) * (image.ndim - 1)).astype(image.dtype)
+        out = out + jax.ops.segment_sum(image * w, targets[t], num_segments=size,
+                                        indices_are_sorted=True)
+    return out
+
+
+def rebin_sparse(image, ops, shape):
+    """Flux-conserving rebinning of [ny, nx, ...] images (extra axes are carried along) to
+    `shape` with `sparse_rebin_operators`: cost ∝ pixels, not pixels × output side."""
+    (ty, wy), (tx, wx) = ops
+    img = _rebin_axis0(image, ty, wy, shape[0])                       # [my, nx, ...]
+    img = _rebin_axis0(jnp.swapaxes(img, 0, 1), tx, wx, shape[1])     # [mx, my, ...]
+    return jnp.swapaxes(img, 0, 1)
 
 
 def bin_blocks(image, factor: int):

@@ -193,17 +193,47 @@ def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
     return ic - stamp // 2, jc - stamp // 2
 
 
-def clump_stamps(clumps: Clumps, grid: Grid, stamp: int, *, order: int = 3, core: int = 5):
-    """Unit-flux stamps [N, stamp, stamp] of every clump, and their origins in `grid`."""
+def clump_cores(clumps: Clumps, grid: Grid, core: int):
+    """Exact pixel integrals [N, core, core] of the block of `grid` pixels around each
+    clump's centre (the block starts core // 2 pixels before the centre's pixel)."""
+    p = grid.pixel_arcsec
+    dtype = jnp.result_type(clumps.re_arcsec)
+    ic = _pixel_index(clumps.center_arcsec[:, 0], grid.x0_arcsec, p) - core // 2
+    jc = _pixel_index(clumps.center_arcsec[:, 1], grid.y0_arcsec, p) - core // 2
+    k = jnp.arange(core)
+
+    def one(c1, c2, re, n, q, pa, ii, jj):
+        xl = (grid.x0_arcsec + ((ii + k).astype(dtype) - 0.5) * p)[None, :]
+        yl = (grid.y0_arcsec + ((jj + k).astype(dtype) - 0.5) * p)[:, None]
+        return profiles.sersic_pixel_flux_exact(xl, xl + p, yl, yl + p, flux=1.0, re_arcsec=re,
+                                                n=n, q=q, pa_rad=pa, center1=c1, center2=c2)
+
+    return jax.vmap(one)(clumps.center_arcsec[:, 0], clumps.center_arcsec[:, 1],
+                         clumps.re_arcsec, clumps.n, clumps.q, clumps.pa_rad, ic, jc).astype(dtype)
+
+
+def clump_stamps(clumps: Clumps, grid: Grid, stamp: int, *, order: int = 3, core: int = 5,
+                 strip: bool = False, cores=None):
+    """Unit-flux stamps [N, stamp, stamp] of every clump, and their origins in `grid`.
+
+    Pixels are Gauss–Legendre sampled (order²) except a block of core² pixels around the
+    centre, integrated exactly. strip=True integrates exactly instead the 3·stamp + core²
+    pixels nearest the major axis: a thin profile (minor axis below a pixel, such as a
+    lensed clump) puts its light on that line, where sampling misses or overweights it.
+    cores: the exact blocks from `clump_cores`, when already made (one compiled
+    incomplete-gamma kernel for every stamp size instead of one per size).
+    """
     i0, j0 = clump_stamp_origin(clumps, grid, stamp)
+    core = min(core, stamp)
+    if cores is None and core > 0 and not strip:
+        cores = clump_cores(clumps, grid, core)
     p = grid.pixel_arcsec
     dtype = jnp.result_type(clumps.re_arcsec)
     bvals = profiles.sersic_b(clumps.n)
     offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))  # Python floats keep float32
     k = jnp.arange(stamp)
-    core = min(core, stamp)
 
-    def one(c1, c2, re, n, q, pa, b, ii, jj):
+    def one(c1, c2, re, n, q, pa, b, ii, jj, block):
         kw = dict(re_arcsec=re, n=n, q=q, pa_rad=pa, center1=c1, center2=c2)
         xc = (grid.x0_arcsec + (ii + k).astype(dtype) * p)[None, :]
         yc = (grid.y0_arcsec + (jj + k).astype(dtype) * p)[:, None]
@@ -212,17 +242,25 @@ def clump_stamps(clumps: Clumps, grid: Grid, stamp: int, *, order: int = 3, core
             for ox, wx in zip(offs, wts):
                 acc = acc + (wy * wx) * sersic_unit_brightness(xc + ox * p, yc + oy * p, b=b, **kw)
         img = acc * (p * p)
-        if core > 0:
+        if strip:
+            # exact pixels: those whose centres lie nearest the major axis (a static count)
+            dist = jnp.abs((xc - c1) * jnp.sin(pa) - (yc - c2) * jnp.cos(pa))
+            count = min(stamp * stamp, 3 * stamp + core * core)
+            _, flat = jax.lax.top_k(-jax.lax.stop_gradient(dist).ravel(), count)
+            xl = xc[0, flat % stamp] - p / 2
+            yl = yc[flat // stamp, 0] - p / 2
+            vals = profiles.sersic_pixel_flux_exact(xl, xl + p, yl, yl + p, flux=1.0, b=b, **kw)
+            img = img.ravel().at[flat].set(vals.astype(dtype)).reshape(stamp, stamp)
+        elif core > 0:
             # the exact block around the centre, which sits at stamp index stamp // 2
             lo = stamp // 2 - core // 2
-            xl = xc[:, lo:lo + core] - p / 2
-            yl = yc[lo:lo + core, :] - p / 2
-            block = profiles.sersic_pixel_flux_exact(xl, xl + p, yl, yl + p, flux=1.0, b=b, **kw)
-            img = jax.lax.dynamic_update_slice(img, block.astype(dtype), (lo, lo))
+            img = jax.lax.dynamic_update_slice(img, block, (lo, lo))
         return img
 
+    blocks = cores if cores is not None else jnp.zeros((clumps.count, 0, 0), dtype)
     stamps = jax.vmap(one)(clumps.center_arcsec[:, 0], clumps.center_arcsec[:, 1],
-                           clumps.re_arcsec, clumps.n, clumps.q, clumps.pa_rad, bvals, i0, j0)
+                           clumps.re_arcsec, clumps.n, clumps.q, clumps.pa_rad, bvals, i0, j0,
+                           blocks)
     return stamps, i0, j0
 
 
@@ -265,14 +303,40 @@ def stamp_groups(re_arcsec, n, pixel_arcsec: float, *, flux_fraction: float = 0.
     return [(int(side), np.nonzero(sides == side)[0]) for side in np.unique(sides)]
 
 
-def clumps_image(clumps: Clumps, grid: Grid, groups, weights, *, order: int = 3, core: int = 5):
-    """Σ over clumps of weights[k, c] × their pixel-integrated light on `grid`: [ny, nx, C]."""
-    out = 0.0
+def grouped_stamps(clumps: Clumps, grid: Grid, groups, *, order: int = 3, core: int = 5,
+                   strip: bool = False):
+    """Unit-flux stamps of every clump by stamp group: [(stamps, i0, j0, indices)]."""
+    out = []
+    cores = None
+    if groups and core > 0 and not strip:
+        # every exact core in one call: the incomplete gamma function compiles once
+        size = min(core, min(side for side, _ in groups))
+        every = jnp.concatenate([jnp.asarray(idx) for _, idx in groups])
+        cores = clump_cores(jax.tree_util.tree_map(lambda a: a[every], clumps), grid, size)
+        core = size
+    start = 0
     for side, idx in groups:
         sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
-        stamps, i0, j0 = clump_stamps(sub, grid, side, order=order, core=core)
-        out = out + scatter_stamps(stamps, i0, j0, weights[idx], grid)
+        mine = None if cores is None else cores[start:start + len(idx)]
+        start += len(idx)
+        out.append(clump_stamps(sub, grid, side, order=order, core=core, strip=strip,
+                                cores=mine) + (idx,))
     return out
+
+
+def scatter_grouped(stamps, weights, grid: Grid):
+    """Σ over the `grouped_stamps` of weights[k, c] × stamp k: images [ny, nx, C]."""
+    out = 0.0
+    for st, i0, j0, idx in stamps:
+        out = out + scatter_stamps(st, i0, j0, weights[idx], grid)
+    return out
+
+
+def clumps_image(clumps: Clumps, grid: Grid, groups, weights, *, order: int = 3, core: int = 5,
+                 strip: bool = False):
+    """Σ over clumps of weights[k, c] × their pixel-integrated light on `grid`: [ny, nx, C]."""
+    return scatter_grouped(grouped_stamps(clumps, grid, groups, order=order, core=core,
+                                          strip=strip), weights, grid)
 
 
 def stamp_size(re_arcsec_max: float, n_max: float, pixel_arcsec: float, *,

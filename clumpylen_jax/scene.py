@@ -129,17 +129,26 @@ _LENS_PARAM_DEFAULTS = {"q": 1.0, "pa_rad": 0.0, "center_arcsec": (0.0, 0.0), "r
 # Gauss–Legendre order per lens-plane pixel (rays per pixel = its square; no
 # node ever sits on a pixel centre, so no sample lands on a cusp),
 # `psf_oversampling` the odd factor of the grid, finer than the detector, on
-# which the PSF acts, `source_mode` "grid" (clumps on the source-plane grid,
-# interpolated at each ray) or "analytic" (every clump at every ray). The
-# values come from clumpylen_jax.model.ACCURACY_PRESETS, chosen by benchmarks/.
+# which the PSF acts, `source_mode` "hybrid" (clumps away from caustics through
+# the local linear lens map, the others as "grid"), "grid" (clumps on the
+# source-plane grid, interpolated at each ray) or "analytic" (every clump at
+# every ray), `linearise_tolerance` how far (in finest detector pixels) "hybrid"
+# lets the linear map misplace a clump's image before it ray-traces the clump.
+# The values come from clumpylen_jax.model.ACCURACY_PRESETS, chosen by benchmarks/.
 def _scene_presets() -> dict[str, dict[str, Any]]:
     from .model import ACCURACY_PRESETS as model_presets
     return {name: {"subsampling": a.lens_subsampling, "psf_oversampling": a.psf_oversampling,
-                   "source_mode": a.source_mode} for name, a in model_presets.items()}
+                   "source_mode": a.source_mode, "linearise_tolerance": a.linearise_tolerance}
+            for name, a in model_presets.items()}
+
+
+def _source_modes() -> tuple:
+    from .model import SOURCE_MODES as modes
+    return modes
 
 
 ACCURACY_PRESETS: dict[str, dict[str, Any]] = _scene_presets()
-SOURCE_MODES = ("grid", "analytic")
+SOURCE_MODES = _source_modes()
 DTYPES = ("float64", "float32")
 
 _FILTER_RE = re.compile(r"^F\d{3}[A-Z0-9]*$")
@@ -315,6 +324,7 @@ class Accuracy:
     subsampling: int = 3
     psf_oversampling: int = 3
     source_mode: str = "grid"
+    linearise_tolerance: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -842,7 +852,8 @@ def _lens_component(c, p) -> LensComponent:
 
 
 _RENDER_KEYS = ("source_pixel_arcsec", "lens_pixel_arcsec", "field_arcsec", "accuracy", "dtype")
-_ACCURACY_KEYS = ("preset", "subsampling", "psf_oversampling", "source_mode", "dtype")
+_ACCURACY_KEYS = ("preset", "subsampling", "psf_oversampling", "source_mode",
+                  "linearise_tolerance", "dtype")
 
 
 def _render(t) -> Render:
@@ -868,6 +879,9 @@ def _render(t) -> Render:
             subsampling=_int(a, "subsampling", ap, base["subsampling"], lo=1, hi=64),
             psf_oversampling=_int(a, "psf_oversampling", ap, base["psf_oversampling"], lo=1, hi=15),
             source_mode=_choice(a, "source_mode", ap, SOURCE_MODES, base["source_mode"]),
+            linearise_tolerance=_float(a, "linearise_tolerance", ap, base["linearise_tolerance"],
+                                       lo=0, expected="a fraction of a detector pixel >= 0 "
+                                       "(0 ray-traces every clump)"),
         )
         if acc.psf_oversampling % 2 == 0:
             raise ConfigError(f"{ap}.psf_oversampling", acc.psf_oversampling,

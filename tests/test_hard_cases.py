@@ -171,15 +171,26 @@ _LENSED_TEMPLATE = Source(clumps=clumps(
 
 
 def lensed_model(mode, dtype, lens=LENS):
+    # "hybrid" with a loose tolerance: the clumps off the caustic are linearised, so that
+    # hypothesis then moves linearised clumps onto caustics and critical curves too
     return build_model(_LENSED_TEMPLATE.astype(dtype), [Band("b", 0.06, 1000.0, 0.1)],
                        lens=lens, field_arcsec=LENSED_FIELD, lens_pixel_arcsec=0.02,
                        source_pixel_arcsec=0.004,
                        accuracy=Accuracy(lens_subsampling=1, source_order=2, exact_core=3,
-                                         source_mode=mode), dtype=dtype)
+                                         source_mode=mode, linearise_tolerance=100.0),
+                       dtype=dtype)
 
 
 LENSED_VG = {(mode, d): value_and_grad_fn(lensed_model(mode, d))
-             for mode, d in (("analytic", jnp.float32), ("grid", jnp.float64))}
+             for mode, d in (("analytic", jnp.float32), ("grid", jnp.float64),
+                             ("hybrid", jnp.float32))}
+
+
+def test_hybrid_hard_case_model_mixes_linearised_and_traced_clumps():
+    m = lensed_model("hybrid", jnp.float32)
+    lin = set(np.asarray(m.lin_images.clump_index).tolist())
+    assert lin and 2 not in lin        # clump 2 sits on the point caustic: ray traced
+    assert m.clump_grid is not None
 
 CLUMP_CENTER = st.one_of(
     st.just((0.0, 0.0)),                                   # on the SIS point caustic

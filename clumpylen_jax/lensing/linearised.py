@@ -1,0 +1,252 @@
+"""Local linearisation of the lens mapping for small sources (clumps).
+
+A clump much smaller than the scale on which the lens Jacobian A = ∂β/∂θ
+changes is imaged, near each image position θ_k, as the same Sérsic seen
+through the linear map A_k: I(θ) = S(β_k + A_k (θ − θ_k)). That is again an
+elliptical Sérsic — flux × |μ_k|, R_e and axis ratio from the eigenvalues of
+(D R A_k)ᵀ(D R A_k) — which can be integrated over detector pixels directly,
+with no rays at all. Near a caustic the approximation fails (the image is a
+merging arc and |μ| varies across it); `build_model` keeps ray tracing there.
+
+Build-time part (numpy, the lens is fixed): images of points on the traced
+corner grid (the same bilinear ray mapping the ray tracer uses) and the
+linearisation error of each clump image. Run-time part (JAX, differentiable
+in the clump parameters): `lensed_clumps`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..pixels import Grid
+from ..profiles import safe_atan2, safe_sqrt
+from ..source import Clumps
+
+
+class ClumpImages(eqx.Module):
+    """Linearisation points of K clump images (fixed when the model is built).
+
+    clump_index: [K] which clump each image belongs to.  theta0: [K, 2] image
+    position (arcsec, lens plane) of the clump centre at build time.  beta0: [K, 2]
+    that centre (arcsec, source plane).  jacobian: [K, 2, 2] A = ∂β/∂θ there.
+    """
+
+    clump_index: jnp.ndarray
+    theta0: jnp.ndarray
+    beta0: jnp.ndarray
+    jacobian: jnp.ndarray
+
+    @property
+    def count(self):
+        return self.clump_index.shape[0]
+
+
+def lensed_clumps(clumps: Clumps, images: ClumpImages) -> Clumps:
+    """The K clump images as lens-plane Sérsics (a `Clumps` with θ centres, magnified flux).
+
+    A clump centre moved from β0 to β images at θ0 + A⁻¹(β − β0) (first order, so
+    fits can move clumps). The lensed profile is S(|D R A (θ − θ_k)|) with D =
+    diag(1, 1/q), R the clump's rotation: its quadratic form Q = (DRA)ᵀ(DRA) has
+    eigenvalues λ_min ≤ λ_max; R_e' = R_e/√λ_min along the eigenvector of λ_min,
+    q' = √(λ_min/λ_max). Safe at circular images (finite gradients).
+    """
+    j = images.clump_index
+    A = images.jacobian.astype(clumps.re_arcsec.dtype)
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    db = clumps.center_arcsec[j] - images.beta0
+    # A⁻¹ db by Cramer's rule
+    d1 = (A[:, 1, 1] * db[:, 0] - A[:, 0, 1] * db[:, 1]) / det
+    d2 = (-A[:, 1, 0] * db[:, 0] + A[:, 0, 0] * db[:, 1]) / det
+    center = images.theta0 + jnp.stack([d1, d2], axis=-1)
+
+    q = clumps.q[j]
+    c = jnp.cos(clumps.pa_rad[j])
+    s = jnp.sin(clumps.pa_rad[j])
+    # rows of D R A: u = c β1 + s β2 (major axis), v = (−s β1 + c β2) / q
+    m00 = c * A[:, 0, 0] + s * A[:, 1, 0]
+    m01 = c * A[:, 0, 1] + s * A[:, 1, 1]
+    m10 = (-s * A[:, 0, 0] + c * A[:, 1, 0]) / q
+    m11 = (-s * A[:, 0, 1] + c * A[:, 1, 1]) / q
+    qa = m00 * m00 + m10 * m10
+    qb = m00 * m01 + m10 * m11
+    qc = m01 * m01 + m11 * m11
+    lmax = 0.5 * (qa + qc) + safe_sqrt((0.5 * (qa - qc)) ** 2 + qb * qb)
+    lmin = (det / q) ** 2 / lmax          # det Q / λ_max: no cancellation for thin images
+    # Q = λ_min e eᵀ + λ_max e⊥ e⊥ᵀ with e = (cos φ, sin φ): Q00 − Q11 = (λ_min − λ_max) cos 2φ
+    pa = 0.5 * safe_atan2(-2.0 * qb, qc - qa)
+    return Clumps(center_arcsec=center,
+                  flux=clumps.flux[j] * (1.0 / jnp.abs(det))[:, None],
+                  re_arcsec=clumps.re_arcsec[j] / jnp.sqrt(lmin),
+                  n=clumps.n[j], q=jnp.sqrt(lmin / lmax), pa_rad=pa)
+
+
+# ---------------------------------------------------------------- build time (numpy)
+
+
+def _bilinear(corner, r, c, fx, fy):
+    v00 = corner[r, c]
+    v01 = corner[r, c + 1]
+    v10 = corner[r + 1, c]
+    v11 = corner[r + 1, c + 1]
+    val = v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy) + v10 * (1 - fx) * fy + v11 * fx * fy
+    dfx = (v01 - v00) * (1 - fy) + (v11 - v10) * fy
+    dfy = (v10 - v00) * (1 - fx) + (v11 - v01) * fx
+    return val, dfx, dfy
+
+
+def map_points(corner_b1, corner_b2, grid: Grid, t1, t2):
+    """β and A = ∂β/∂θ at lens-plane points (arcsec) from the corner grid's bilinear mapping.
+
+    Returns (b1, b2, A [.., 2, 2], inside); points outside the grid are clamped and
+    flagged False in `inside`.
+    """
+    h = grid.pixel_arcsec
+    x = (np.asarray(t1, float) - (grid.x0_arcsec - 0.5 * h)) / h
+    y = (np.asarray(t2, float) - (grid.y0_arcsec - 0.5 * h)) / h
+    inside = (x >= 0) & (x <= grid.nx) & (y >= 0) & (y <= grid.ny)
+    c = np.clip(np.floor(x).astype(int), 0, grid.nx - 1)
+    r = np.clip(np.floor(y).astype(int), 0, grid.ny - 1)
+    fx = np.clip(x - c, 0.0, 1.0)
+    fy = np.clip(y - r, 0.0, 1.0)
+    b1, d1x, d1y = _bilinear(corner_b1, r, c, fx, fy)
+    b2, d2x, d2y = _bilinear(corner_b2, r, c, fx, fy)
+    A = np.stack([np.stack([d1x, d1y], -1), np.stack([d2x, d2y], -1)], -2) / h
+    return b1, b2, A, inside
+
+
+def pixel_footprints(corner_b1, corner_b2, rows, cols):
+    """Centre (mean of the corners' β) and reach (largest corner distance from it) of the
+    source-plane footprints of lens-plane pixels (rows, cols): three [M] arrays."""
+    q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
+    v1 = np.stack([corner_b1[a, b] for a, b in q], -1)
+    v2 = np.stack([corner_b2[a, b] for a, b in q], -1)
+    m1 = v1.mean(-1)
+    m2 = v2.mean(-1)
+    return m1, m2, np.max(np.hypot(v1 - m1[:, None], v2 - m2[:, None]), axis=-1)
+
+
+def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii):
+    """Pairs (disc index [L], pixel index [L]) of source-plane discs (centers [P, 2], radii [P],
+    arcsec) and lens-plane pixels (rows, cols) whose footprint comes within the disc."""
+    m1, m2, reach = pixel_footprints(corner_b1, corner_b2, np.asarray(rows), np.asarray(cols))
+    centers = np.asarray(centers, float).reshape(-1, 2)
+    radii = np.asarray(radii, float)
+    none = (np.zeros(0, int), np.zeros(0, int))
+    if m1.size == 0 or centers.shape[0] == 0:
+        return none
+    # one tree per octave of footprint size, so that a few huge footprints (near a
+    # lens centre) do not widen every query
+    level = np.floor(np.log2(np.maximum(reach, 1e-300))).astype(int)
+    pis, mis = [], []
+    for lv in np.unique(level):
+        members = np.nonzero(level == lv)[0]
+        tree = cKDTree(np.stack([m1[members], m2[members]], -1))
+        cand = tree.query_ball_point(centers, r=radii + 1.01 * reach[members].max() + 1e-12)
+        pi = np.repeat(np.arange(centers.shape[0]), [len(c) for c in cand])
+        if pi.size:
+            pis.append(pi)
+            mis.append(members[np.concatenate([np.asarray(c, int) for c in cand])])
+    if not pis:
+        return none
+    pi, mi = np.concatenate(pis), np.concatenate(mis)
+    near = (np.hypot(centers[pi, 0] - m1[mi], centers[pi, 1] - m2[mi])
+            <= radii[pi] + 1.01 * reach[mi] + 1e-12)
+    return pi[near], mi[near]
+
+
+def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_pixels=0.5):
+    """Every image of each source-plane point inside the given lens-plane pixels.
+
+    corner_b1/2: β at the grid's pixel corners ([ny + 1, nx + 1]); rows, cols: the pixels
+    searched; points: [P, 2] β (arcsec). Each pixel is split into two triangles whose
+    images in the source plane are tested for each point (triangle mapping), and the
+    hit is then solved exactly on the pixel's bilinear mapping (Newton, which the
+    ray tracer's rays follow too). Returns numpy (point_index [K], theta [K, 2],
+    A [K, 2, 2]); images of a point closer than `merge_pixels` are merged.
+    """
+    points = np.asarray(points, float).reshape(-1, 2)
+    h = grid.pixel_arcsec
+    rows = np.asarray(rows)
+    cols = np.asarray(cols)
+    q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
+    v1 = np.stack([corner_b1[a, b] for a, b in q], -1)        # [M, 4]: 00, 01, 10, 11
+    v2 = np.stack([corner_b2[a, b] for a, b in q], -1)
+    pi, mi = pixels_near(corner_b1, corner_b2, rows, cols, points, np.zeros(points.shape[0]))
+    if pi.size == 0:
+        return np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
+    # the two triangles (00, 01, 11) and (00, 11, 10) in pixel units (fx, fy)
+    found_p, found_m, found_f = [], [], []
+    for tri, pts in (((0, 1, 3), ((0, 0), (1, 0), (1, 1))), ((0, 3, 2), ((0, 0), (1, 1), (0, 1)))):
+        a, b, c = tri
+        e1 = np.stack([v1[mi, b] - v1[mi, a], v2[mi, b] - v2[mi, a]], -1)
+        e2 = np.stack([v1[mi, c] - v1[mi, a], v2[mi, c] - v2[mi, a]], -1)
+        d = np.stack([points[pi, 0] - v1[mi, a], points[pi, 1] - v2[mi, a]], -1)
+        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        ok = np.abs(det) > 1e-30
+        det = np.where(ok, det, 1.0)
+        l1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
+        l2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
+        tol = -1e-9
+        hit = ok & (l1 >= tol) & (l2 >= tol) & (l1 + l2 <= 1 - tol)
+        p0, p1, p2 = (np.asarray(p, float) for p in pts)
+        f = p0[None] + l1[:, None] * (p1 - p0)[None] + l2[:, None] * (p2 - p0)[None]
+        found_p.append(pi[hit])
+        found_m.append(mi[hit])
+        found_f.append(f[hit])
+    pidx = np.concatenate(found_p)
+    midx = np.concatenate(found_m)
+    f = np.concatenate(found_f)
+    r, c = rows[midx], cols[midx]
+    fx, fy = f[:, 0].copy(), f[:, 1].copy()
+    # Newton on the bilinear patch (the triangle solution is the first guess)
+    for _ in range(8):
+        b1, d1x, d1y = _bilinear(corner_b1, r, c, fx, fy)
+        b2, d2x, d2y = _bilinear(corner_b2, r, c, fx, fy)
+        r1 = points[pidx, 0] - b1
+        r2 = points[pidx, 1] - b2
+        det = d1x * d2y - d1y * d2x
+        det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+        fx = np.clip(fx + (d2y * r1 - d1y * r2) / det, 0.0, 1.0)
+        fy = np.clip(fy + (-d2x * r1 + d1x * r2) / det, 0.0, 1.0)
+    theta = np.stack([grid.x0_arcsec + (c + fx - 0.5) * h,
+                      grid.y0_arcsec + (r + fy - 0.5) * h], -1)
+    _, _, A, _ = map_points(corner_b1, corner_b2, grid, theta[:, 0], theta[:, 1])
+    # merge duplicates (a point on a shared edge is found in both neighbours)
+    order = np.lexsort((theta[:, 1], theta[:, 0], pidx))
+    pidx, theta, A = pidx[order], theta[order], A[order]
+    keep = np.ones(pidx.size, bool)
+    for k in range(1, pidx.size):
+        same = (pidx[:k] == pidx[k]) & keep[:k]
+        if np.any(same & (np.hypot(*(theta[:k] - theta[k]).T) < merge_pixels * h)):
+            keep[k] = False
+    return pidx[keep], theta[keep], A[keep]
+
+
+def linearisation_error(corner_b1, corner_b2, grid: Grid, theta, A, beta0, radius_arcsec,
+                        n_angles: int = 16):
+    """How far (arcsec, lens plane) the linearised image misplaces a clump's rim.
+
+    For points β on the circle of `radius_arcsec` ([K]) around the clump centre β0,
+    the linear map puts their image at θ_lin = θ_k + A⁻¹(β − β0); the ray mapping
+    sends θ_lin to β(θ_lin), and the image of β is off by ≈ |A⁻¹(β(θ_lin) − β)|.
+    Returns the largest such distance per image ([K]); +inf where the rim's image
+    leaves the grid (not linearisable).
+    """
+    K = theta.shape[0]
+    if K == 0:
+        return np.zeros(0)
+    ang = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
+    circle = np.stack([np.cos(ang), np.sin(ang)], -1)                 # [S, 2]
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    Ainv = np.stack([np.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
+                     np.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / det[:, None, None]
+    dbeta = radius_arcsec[:, None, None] * circle[None]               # [K, S, 2]
+    t = theta[:, None, :] + np.einsum("kab,ksb->ksa", Ainv, dbeta)
+    b1, b2, _, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
+    miss = np.stack([b1 - beta0[:, None, 0] - dbeta[..., 0],
+                     b2 - beta0[:, None, 1] - dbeta[..., 1]], -1)
+    out = np.linalg.norm(np.einsum("kab,ksb->ksa", Ainv, miss), axis=-1).max(-1)
+    return np.where(inside.all(-1) & np.isfinite(out), out, np.inf)
