@@ -323,7 +323,7 @@ class Accuracy:
     preset: str = "default"
     subsampling: int = 3
     psf_oversampling: int = 3
-    source_mode: str = "grid"
+    source_mode: str = "hybrid"
     linearise_tolerance: float = 0.05
 
 
