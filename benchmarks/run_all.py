@@ -1,6 +1,6 @@
 """Run every benchmark of issue 7 and write their results under benchmarks/results/.
 
-Usage: ``python benchmarks/run_all.py [--quick] [--only accuracy,lenstronomy,scene,scaling]``.
+Usage: ``python benchmarks/run_all.py [--quick] [--only accuracy,lenstronomy,scene,scaling,paper_lens]``.
 Each script also runs on its own (see benchmarks/README.md). bench_fit.py (likelihood +
 gradient cost) belongs to the inference benchmarks and runs separately.
 """
@@ -19,9 +19,10 @@ JOBS = {
     "lenstronomy": ["bench_lenstronomy.py"],
     "scene": ["bench_scene.py"],
     "scaling": ["bench_scaling.py"],
+    "paper_lens": ["bench_paper_lens.py"],
 }
 QUICK = {"accuracy": ["--quick"], "lenstronomy": ["--quick"], "scene": ["--settings", "as-is"],
-         "scaling": ["--quick"]}
+         "scaling": ["--quick"], "paper_lens": []}
 
 
 def main(argv=None):
