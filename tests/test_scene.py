@@ -143,6 +143,21 @@ def test_accuracy_table_and_dtype():
     assert error_for(d).setting == "render.accuracy.dtype"
 
 
+def test_linearise_tolerance_key_reaches_the_model_and_is_checked():
+    from clumpylen_jax import pipeline
+    d = minimal()
+    d["render"] = {"accuracy": {"source_mode": "hybrid", "linearise_tolerance": 0.2}}
+    s = sc.scene_from_dict(d)
+    assert s.render.accuracy.linearise_tolerance == 0.2
+    assert s.render.accuracy.source_mode == "hybrid"
+    acc = pipeline._accuracy(s)
+    assert (acc.linearise_tolerance, acc.source_mode) == (0.2, "hybrid")
+    assert sc.ACCURACY_PRESETS["default"]["source_mode"] == "hybrid"
+    d["render"]["accuracy"]["linearise_tolerance"] = -1.0
+    e = error_for(d)
+    assert e.setting == "render.accuracy.linearise_tolerance" and "-1" in str(e)
+
+
 # --- validation messages -----------------------------------------------------
 
 
