@@ -27,8 +27,8 @@ import numpy as np
 
 from . import convolve, noise, render, tiles
 from .errors import ConfigError, require
-from .lensing.linearised import (ClumpImages, lensed_clumps, linearisation_error,
-                                 pixel_footprints, pixels_near, point_images)
+from .lensing.linearised import (ClumpImages, bilinear_patch, lensed_clumps,
+                                 linearisation_error, pixel_footprints, pixels_near, point_images)
 from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin_sparse, sparse_rebin_operators
 from .source import Source
 
@@ -250,15 +250,8 @@ def rays_in_pixels(corner_b1, corner_b2, rows, cols, offsets):
     ox, oy = offsets
     fx = (ox + 0.5)[None, :]
     fy = (oy + 0.5)[None, :]
-    out = []
-    for b in (corner_b1, corner_b2):
-        v00 = b[rows, cols][:, None]
-        v01 = b[rows, cols + 1][:, None]
-        v10 = b[rows + 1, cols][:, None]
-        v11 = b[rows + 1, cols + 1][:, None]
-        out.append(v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy) + v10 * (1 - fx) * fy
-                   + v11 * fx * fy)
-    return out
+    return [bilinear_patch(b, rows[:, None], cols[:, None], fx, fy, derivatives=False)
+            for b in (corner_b1, corner_b2)]
 
 
 # ------------------------------------------------------------------ the model

@@ -19,6 +19,8 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from .lensing.grid import bilinear_gather, bilinear_neighbours
+
 
 @dataclasses.dataclass(frozen=True)
 class TileLayout:
@@ -39,14 +41,6 @@ class TileLayout:
         return self.slots * self.tile * self.tile + 1
 
 
-def _corners(x_pix, y_pix, ny, nx, xp):
-    x = xp.clip(x_pix, 0.0, nx - 1.0)
-    y = xp.clip(y_pix, 0.0, ny - 1.0)
-    i0 = xp.clip(xp.floor(x).astype(np.int32), 0, max(nx - 2, 0))
-    j0 = xp.clip(xp.floor(y).astype(np.int32), 0, max(ny - 2, 0))
-    return x, y, i0, j0, xp.minimum(i0 + 1, nx - 1), xp.minimum(j0 + 1, ny - 1)
-
-
 def active_tiles(x_pix, y_pix, shape, tile: int = 32, chunk: int = 1 << 22):
     """(TileLayout, slot map [tiles] int32, −1 where unused) for rays at (x_pix, y_pix) (numpy)."""
     ny, nx = shape
@@ -54,7 +48,7 @@ def active_tiles(x_pix, y_pix, shape, tile: int = 32, chunk: int = 1 << 22):
     used = np.zeros((-(-ny // tile)) * tx, bool)
     xf, yf = np.ravel(x_pix), np.ravel(y_pix)
     for s in range(0, xf.size, chunk):
-        _, _, i0, j0, i1, j1 = _corners(xf[s:s + chunk], yf[s:s + chunk], ny, nx, np)
+        _, _, i0, j0, i1, j1 = bilinear_neighbours(xf[s:s + chunk], yf[s:s + chunk], ny, nx, np)
         for j in (j0, j1):
             for i in (i0, i1):
                 used[(j // tile) * tx + i // tile] = True
@@ -93,12 +87,5 @@ def scatter_stamps(layout: TileLayout, slot_map, stamps, i0, j0, weights, storag
 
 def bilinear(layout: TileLayout, slot_map, storage, x_pix, y_pix):
     """Bilinear interpolation [..., C] of the tiled grid at fractional pixel indices."""
-    x, y, i0, j0, i1, j1 = _corners(x_pix, y_pix, layout.ny, layout.nx, jnp)
-    fx = (x - i0)[..., None]
-    fy = (y - j0)[..., None]
-
-    def get(j, i):
-        return storage[flat_index(layout, slot_map, j, i)]
-
-    return (get(j0, i0) * (1 - fx) * (1 - fy) + get(j0, i1) * fx * (1 - fy)
-            + get(j1, i0) * (1 - fx) * fy + get(j1, i1) * fx * fy)
+    return bilinear_gather(lambda j, i: storage[flat_index(layout, slot_map, j, i)],
+                           x_pix, y_pix, layout.ny, layout.nx)

@@ -26,6 +26,30 @@ def bilinear_interpolate(image, x_pix, y_pix):
     return bilinear_interpolate_channels(image[:, :, None], x_pix, y_pix)[..., 0]
 
 
+def bilinear_neighbours(x_pix, y_pix, ny: int, nx: int, xp=jnp):
+    """Clamped positions and the four neighbours of bilinear interpolation on [ny, nx].
+
+    Returns (x, y, i0, j0, i1, j1): positions clamped to the edge (the rule for rays
+    outside a map) and the column/row indices of the neighbours. `xp` is jax.numpy or
+    numpy (build-time bookkeeping uses the same rule as the interpolation).
+    """
+    x = xp.clip(x_pix, 0.0, nx - 1.0)
+    y = xp.clip(y_pix, 0.0, ny - 1.0)
+    i0 = xp.clip(xp.floor(x).astype(np.int32), 0, max(nx - 2, 0))
+    j0 = xp.clip(xp.floor(y).astype(np.int32), 0, max(ny - 2, 0))
+    return x, y, i0, j0, xp.minimum(i0 + 1, nx - 1), xp.minimum(j0 + 1, ny - 1)
+
+
+def bilinear_gather(get, x_pix, y_pix, ny: int, nx: int):
+    """Bilinear interpolation [..., C] of a channels-last field of shape [ny, nx, C] that
+    `get(rows, cols)` reads (a dense array or any other storage)."""
+    x, y, i0, j0, i1, j1 = bilinear_neighbours(x_pix, y_pix, ny, nx)
+    fx = (x - i0)[..., None]
+    fy = (y - j0)[..., None]
+    return (get(j0, i0) * (1 - fx) * (1 - fy) + get(j0, i1) * fx * (1 - fy)
+            + get(j1, i0) * (1 - fx) * fy + get(j1, i1) * fx * fy)
+
+
 def bilinear_interpolate_channels(image, x_pix, y_pix):
     """Bilinear interpolation of a channels-last image [ny, nx, C] at fractional pixel indices.
 
@@ -33,18 +57,8 @@ def bilinear_interpolate_channels(image, x_pix, y_pix):
     are clamped to the edge (the rule for rays outside a map). Each of the four
     neighbours is read once for all channels.
     """
-    ny, nx = image.shape[:2]
-    x = jnp.clip(x_pix, 0.0, nx - 1.0)
-    y = jnp.clip(y_pix, 0.0, ny - 1.0)
-    i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, max(nx - 2, 0))
-    j0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, max(ny - 2, 0))
-    i1 = jnp.minimum(i0 + 1, nx - 1)
-    j1 = jnp.minimum(j0 + 1, ny - 1)
-    fx = (x - i0)[..., None]
-    fy = (y - j0)[..., None]
-    get = lambda j, i: image.at[j, i].get(mode="promise_in_bounds")  # noqa: E731 (clipped above)
-    return (get(j0, i0) * (1 - fx) * (1 - fy) + get(j0, i1) * fx * (1 - fy)
-            + get(j1, i0) * (1 - fx) * fy + get(j1, i1) * fx * fy)
+    get = lambda j, i: image.at[j, i].get(mode="promise_in_bounds")  # noqa: E731 (clipped)
+    return bilinear_gather(get, x_pix, y_pix, *image.shape[:2])
 
 
 class DeflectionGrid(eqx.Module):

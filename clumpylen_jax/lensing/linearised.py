@@ -86,12 +86,17 @@ def lensed_clumps(clumps: Clumps, images: ClumpImages) -> Clumps:
 # ---------------------------------------------------------------- build time (numpy)
 
 
-def _bilinear(corner, r, c, fx, fy):
+def bilinear_patch(corner, r, c, fx, fy, *, derivatives=True):
+    """Value and (unless derivatives=False) derivatives per pixel along x and y of the
+    bilinear interpolation of corner values [ny + 1, nx + 1] inside pixels (r, c) at
+    fractions (fx, fy) ∈ [0, 1]."""
     v00 = corner[r, c]
     v01 = corner[r, c + 1]
     v10 = corner[r + 1, c]
     v11 = corner[r + 1, c + 1]
     val = v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy) + v10 * (1 - fx) * fy + v11 * fx * fy
+    if not derivatives:
+        return val
     dfx = (v01 - v00) * (1 - fy) + (v11 - v10) * fy
     dfy = (v10 - v00) * (1 - fx) + (v11 - v01) * fx
     return val, dfx, dfy
@@ -111,18 +116,23 @@ def map_points(corner_b1, corner_b2, grid: Grid, t1, t2):
     r = np.clip(np.floor(y).astype(int), 0, grid.ny - 1)
     fx = np.clip(x - c, 0.0, 1.0)
     fy = np.clip(y - r, 0.0, 1.0)
-    b1, d1x, d1y = _bilinear(corner_b1, r, c, fx, fy)
-    b2, d2x, d2y = _bilinear(corner_b2, r, c, fx, fy)
+    b1, d1x, d1y = bilinear_patch(corner_b1, r, c, fx, fy)
+    b2, d2x, d2y = bilinear_patch(corner_b2, r, c, fx, fy)
     A = np.stack([np.stack([d1x, d1y], -1), np.stack([d2x, d2y], -1)], -2) / h
     return b1, b2, A, inside
+
+
+def _pixel_corners(corner_b1, corner_b2, rows, cols):
+    """β1, β2 at the corners 00, 01, 10, 11 of lens-plane pixels (rows, cols): [M, 4] each."""
+    q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
+    return (np.stack([corner_b1[a, b] for a, b in q], -1),
+            np.stack([corner_b2[a, b] for a, b in q], -1))
 
 
 def pixel_footprints(corner_b1, corner_b2, rows, cols):
     """Centre (mean of the corners' β) and reach (largest corner distance from it) of the
     source-plane footprints of lens-plane pixels (rows, cols): three [M] arrays."""
-    q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
-    v1 = np.stack([corner_b1[a, b] for a, b in q], -1)
-    v2 = np.stack([corner_b2[a, b] for a, b in q], -1)
+    v1, v2 = _pixel_corners(corner_b1, corner_b2, rows, cols)
     m1 = v1.mean(-1)
     m2 = v2.mean(-1)
     return m1, m2, np.max(np.hypot(v1 - m1[:, None], v2 - m2[:, None]), axis=-1)
@@ -171,9 +181,7 @@ def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_
     h = grid.pixel_arcsec
     rows = np.asarray(rows)
     cols = np.asarray(cols)
-    q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
-    v1 = np.stack([corner_b1[a, b] for a, b in q], -1)        # [M, 4]: 00, 01, 10, 11
-    v2 = np.stack([corner_b2[a, b] for a, b in q], -1)
+    v1, v2 = _pixel_corners(corner_b1, corner_b2, rows, cols)
     pi, mi = pixels_near(corner_b1, corner_b2, rows, cols, points, np.zeros(points.shape[0]))
     if pi.size == 0:
         return np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
@@ -203,8 +211,8 @@ def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_
     fx, fy = f[:, 0].copy(), f[:, 1].copy()
     # Newton on the bilinear patch (the triangle solution is the first guess)
     for _ in range(8):
-        b1, d1x, d1y = _bilinear(corner_b1, r, c, fx, fy)
-        b2, d2x, d2y = _bilinear(corner_b2, r, c, fx, fy)
+        b1, d1x, d1y = bilinear_patch(corner_b1, r, c, fx, fy)
+        b2, d2x, d2y = bilinear_patch(corner_b2, r, c, fx, fy)
         r1 = points[pidx, 0] - b1
         r2 = points[pidx, 1] - b2
         det = d1x * d2y - d1y * d2x
