@@ -415,12 +415,14 @@ class SceneModel(eqx.Module):
         img = jnp.zeros((r1 - r0, c1 - c0, vals.shape[0]), vals.dtype)
         return img.at[self.ray_rows - r0, self.ray_cols - c0].set(vals.T)
 
-    def _lensed_clump_image(self, source: Source, grid: Grid, sides, index):
-        """Linearised clump images on `grid`, every band: [ny, nx, B] counts/s per pixel."""
+    def _lensed_clump_images(self, source: Source, targets):
+        """Linearised clump images on each (grid, sides, index) of `targets`, every band:
+        [ny, nx, B] counts/s per pixel each (one exact-pixel kernel for all grids)."""
         lin = lensed_clumps(source.clumps, self.lin_images)
-        return render.clumps_image(lin, grid, tuple(zip(sides, index)), lin.flux,
-                                   order=self.accuracy.source_order, core=self.accuracy.exact_core,
-                                   strip=True)
+        return render.clumps_images(lin, [(g, tuple(zip(sides, index))) for g, sides, index
+                                          in targets], lin.flux,
+                                    order=self.accuracy.source_order,
+                                    core=self.accuracy.exact_core, strip=True)
 
     def _has_linearised(self, source: Source):
         return (self.lin_images is not None and self.lin_images.count > 0
@@ -480,8 +482,8 @@ class SceneModel(eqx.Module):
             r0, r1, c0, c1 = self.ray_window
             img = img.at[r0:r1, c0:c1].add(win)
         if self._has_linearised(source):
-            img = img + self._lensed_clump_image(source, self.hr_grid, self.lin_hr_sides,
-                                                 self.lin_hr_index)
+            img = img + self._lensed_clump_images(
+                source, [(self.hr_grid, self.lin_hr_sides, self.lin_hr_index)])[0]
         return jnp.moveaxis(img, -1, 0)
 
     # -- detector ----------------------------------------------------------------
@@ -538,12 +540,19 @@ class SceneModel(eqx.Module):
                 hosts = jnp.zeros(self.hr_grid.shape + (units.shape[1],), units.dtype)
                 hosts = hosts.at[self.traced_rows, self.traced_cols].set(units)
             win = self._clump_window(source)
-            lin = self._has_linearised(source)
             r0, r1, c0, c1 = self.ray_window
+            lin = {}
+            if self._has_linearised(source):
+                first = {}       # bands on the same sub-grid share every image on it
+                for k, lay in enumerate(self.layouts):
+                    first.setdefault(lay.grid.subdivided(lay.oversampling), k)
+                lin = dict(zip(first, self._lensed_clump_images(
+                    source, [(g, self.lin_stamp_sides[k], self.lin_stamp_index[k])
+                             for g, k in first.items()])))
             cache = {}
             for k, lay in enumerate(self.layouts):
                 g = lay.grid.subdivided(lay.oversampling)
-                if g not in cache:   # bands on the same sub-grid share every rebinning
+                if g not in cache:
                     (ty, wy), (tx, wx) = ops = self.rebin_ops[k]
                     parts = {}
                     if hosts is not None:
@@ -552,9 +561,8 @@ class SceneModel(eqx.Module):
                         parts["clumps"] = rebin_sparse(
                             win, ((ty[:, r0:r1], wy[:, r0:r1]), (tx[:, c0:c1], wx[:, c0:c1])),
                             g.shape)
-                    if lin:
-                        parts["linearised"] = self._lensed_clump_image(
-                            source, g, self.lin_stamp_sides[k], self.lin_stamp_index[k])
+                    if g in lin:
+                        parts["linearised"] = lin[g]
                     cache[g] = parts
                 parts = cache[g]
                 sub = jnp.zeros(g.shape, self.beta1_center.dtype)

@@ -193,75 +193,116 @@ def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
     return ic - stamp // 2, jc - stamp // 2
 
 
-def clump_cores(clumps: Clumps, grid: Grid, core: int):
-    """Exact pixel integrals [N, core, core] of the block of `grid` pixels around each
-    clump's centre (the block starts core // 2 pixels before the centre's pixel)."""
+def _sampled_stamps(clumps: Clumps, b, grid: Grid, stamp: int, order: int):
+    """Gauss–Legendre (order²) pixel integrals [N, stamp, stamp] of unit-flux clumps, the
+    stamps' origins (i0, j0) in `grid`, and their pixel centres (x [N, stamp], y [N, stamp]).
+
+    One broadcast evaluation over [clump, y offset, row, x offset, column]: one compiled
+    profile per stamp size, not one per sample.
+    """
+    i0, j0 = clump_stamp_origin(clumps, grid, stamp)
     p = grid.pixel_arcsec
     dtype = jnp.result_type(clumps.re_arcsec)
-    ic = _pixel_index(clumps.center_arcsec[:, 0], grid.x0_arcsec, p) - core // 2
-    jc = _pixel_index(clumps.center_arcsec[:, 1], grid.y0_arcsec, p) - core // 2
-    k = jnp.arange(core)
+    offs, wts = gauss_legendre_offsets(order)
+    o = jnp.asarray(offs * p, dtype)
+    w = jnp.asarray(wts, dtype)
+    k = jnp.arange(stamp)
+    xc = grid.x0_arcsec + (i0[:, None] + k).astype(dtype) * p
+    yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
+    x = xc[:, None, None, None, :] + o[None, None, None, :, None]
+    y = yc[:, None, :, None, None] + o[None, :, None, None, None]
 
-    def one(c1, c2, re, n, q, pa, ii, jj):
-        xl = (grid.x0_arcsec + ((ii + k).astype(dtype) - 0.5) * p)[None, :]
-        yl = (grid.y0_arcsec + ((jj + k).astype(dtype) - 0.5) * p)[:, None]
+    def per_clump(a):
+        return a[:, None, None, None, None]
+
+    val = sersic_unit_brightness(
+        x, y, re_arcsec=per_clump(clumps.re_arcsec), n=per_clump(clumps.n),
+        q=per_clump(clumps.q), pa_rad=per_clump(clumps.pa_rad),
+        center1=per_clump(clumps.center_arcsec[:, 0]),
+        center2=per_clump(clumps.center_arcsec[:, 1]), b=per_clump(b))
+    wy = w[None, :, None, None, None]
+    wx = w[None, None, None, :, None]
+    stamps = jnp.sum(val * wy * wx, axis=(1, 3)) * (p * p)
+    return stamps, i0, j0, xc, yc
+
+
+def _exact_pixels(clumps: Clumps, xc, yc, stamp: int, core: int, strip: bool):
+    """Flat stamp indices [N, count] of the pixels to integrate exactly.
+
+    A core × core block around the centre (which sits at stamp index stamp // 2), or,
+    with strip, the 3·stamp + core² pixels whose centres lie nearest the major axis.
+    """
+    n = clumps.count
+    if strip:
+        count = min(stamp * stamp, 3 * stamp + core * core)
+        c1 = clumps.center_arcsec[:, 0, None, None]
+        c2 = clumps.center_arcsec[:, 1, None, None]
+        pa = clumps.pa_rad[:, None, None]
+        dist = jnp.abs((xc[:, None, :] - c1) * jnp.sin(pa) - (yc[:, :, None] - c2) * jnp.cos(pa))
+        _, flat = jax.lax.top_k(-jax.lax.stop_gradient(dist).reshape(n, -1), count)
+        return flat
+    lo = stamp // 2 - core // 2
+    k = np.arange(lo, lo + core)
+    block = (k[:, None] * stamp + k[None, :]).ravel()
+    return jnp.broadcast_to(jnp.asarray(block, jnp.int32), (n, block.size))
+
+
+def _exact_fluxes(clumps: Clumps, b, which, x_lo, y_lo, pixel):
+    """Exact unit-flux integrals over pixels [x_lo, x_lo + pixel] × [y_lo, y_lo + pixel] of
+    clump `which` (all 1-D, arcsec): one incomplete-gamma kernel however many stamp sizes
+    and grids ask for them."""
+    def one(xl, yl, p, c1, c2, re, n, q, pa, b):
         return profiles.sersic_pixel_flux_exact(xl, xl + p, yl, yl + p, flux=1.0, re_arcsec=re,
-                                                n=n, q=q, pa_rad=pa, center1=c1, center2=c2)
+                                                n=n, q=q, pa_rad=pa, center1=c1, center2=c2, b=b)
 
-    return jax.vmap(one)(clumps.center_arcsec[:, 0], clumps.center_arcsec[:, 1],
-                         clumps.re_arcsec, clumps.n, clumps.q, clumps.pa_rad, ic, jc).astype(dtype)
+    return jax.vmap(one)(x_lo, y_lo, pixel, clumps.center_arcsec[which, 0],
+                         clumps.center_arcsec[which, 1], clumps.re_arcsec[which], clumps.n[which],
+                         clumps.q[which], clumps.pa_rad[which], b[which])
 
 
-def clump_stamps(clumps: Clumps, grid: Grid, stamp: int, *, order: int = 3, core: int = 5,
-                 strip: bool = False, cores=None):
-    """Unit-flux stamps [N, stamp, stamp] of every clump, and their origins in `grid`.
+def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
+                      strip: bool = False):
+    """Unit-flux stamps of every clump on several grids: for each (grid, groups) of
+    `targets`, [(stamps [n, side, side], i0, j0, indices)] by stamp group.
 
     Pixels are Gauss–Legendre sampled (order²) except a block of core² pixels around the
     centre, integrated exactly. strip=True integrates exactly instead the 3·stamp + core²
     pixels nearest the major axis: a thin profile (minor axis below a pixel, such as a
     lensed clump) puts its light on that line, where sampling misses or overweights it.
-    cores: the exact blocks from `clump_cores`, when already made (one compiled
-    incomplete-gamma kernel for every stamp size instead of one per size).
+    b(n) and the exact integrals of every group on every grid are one computation each,
+    so the incomplete gamma function compiles twice however many stamp sizes there are.
     """
-    i0, j0 = clump_stamp_origin(clumps, grid, stamp)
-    core = min(core, stamp)
-    if cores is None and core > 0 and not strip:
-        cores = clump_cores(clumps, grid, core)
-    p = grid.pixel_arcsec
     dtype = jnp.result_type(clumps.re_arcsec)
-    bvals = profiles.sersic_b(clumps.n)
-    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))  # Python floats keep float32
-    k = jnp.arange(stamp)
-
-    def one(c1, c2, re, n, q, pa, b, ii, jj, block):
-        kw = dict(re_arcsec=re, n=n, q=q, pa_rad=pa, center1=c1, center2=c2)
-        xc = (grid.x0_arcsec + (ii + k).astype(dtype) * p)[None, :]
-        yc = (grid.y0_arcsec + (jj + k).astype(dtype) * p)[:, None]
-        acc = jnp.zeros((stamp, stamp), dtype)
-        for oy, wy in zip(offs, wts):
-            for ox, wx in zip(offs, wts):
-                acc = acc + (wy * wx) * sersic_unit_brightness(xc + ox * p, yc + oy * p, b=b, **kw)
-        img = acc * (p * p)
-        if strip:
-            # exact pixels: those whose centres lie nearest the major axis (a static count)
-            dist = jnp.abs((xc - c1) * jnp.sin(pa) - (yc - c2) * jnp.cos(pa))
-            count = min(stamp * stamp, 3 * stamp + core * core)
-            _, flat = jax.lax.top_k(-jax.lax.stop_gradient(dist).ravel(), count)
-            xl = xc[0, flat % stamp] - p / 2
-            yl = yc[flat // stamp, 0] - p / 2
-            vals = profiles.sersic_pixel_flux_exact(xl, xl + p, yl, yl + p, flux=1.0, b=b, **kw)
-            img = img.ravel().at[flat].set(vals.astype(dtype)).reshape(stamp, stamp)
-        elif core > 0:
-            # the exact block around the centre, which sits at stamp index stamp // 2
-            lo = stamp // 2 - core // 2
-            img = jax.lax.dynamic_update_slice(img, block, (lo, lo))
-        return img
-
-    blocks = cores if cores is not None else jnp.zeros((clumps.count, 0, 0), dtype)
-    stamps = jax.vmap(one)(clumps.center_arcsec[:, 0], clumps.center_arcsec[:, 1],
-                           clumps.re_arcsec, clumps.n, clumps.q, clumps.pa_rad, bvals, i0, j0,
-                           blocks)
-    return stamps, i0, j0
+    b = profiles.sersic_b(clumps.n)
+    parts, which, x_lo, y_lo, pix = [], [], [], [], []
+    for t, (grid, groups) in enumerate(targets):
+        p = grid.pixel_arcsec
+        for side, idx in groups:
+            idx = jnp.asarray(idx)
+            sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
+            stamps, i0, j0, xc, yc = _sampled_stamps(sub, b[idx], grid, side, order)
+            c = min(core, side)
+            flat = _exact_pixels(sub, xc, yc, side, c, strip) if c > 0 else None
+            parts.append((t, stamps, i0, j0, idx, flat))
+            if flat is not None:
+                rows = jnp.arange(idx.shape[0])[:, None]
+                which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
+                x_lo.append((xc[rows, flat % side] - p / 2).ravel())
+                y_lo.append((yc[rows, flat // side] - p / 2).ravel())
+                pix.append(jnp.full(flat.size, p, dtype))
+    if which:
+        exact = _exact_fluxes(clumps, b, *(jnp.concatenate(v) for v in (which, x_lo, y_lo, pix)))
+        exact = exact.astype(dtype)
+    out, start = [[] for _ in targets], 0
+    for t, stamps, i0, j0, idx, flat in parts:
+        if flat is not None:
+            n, side = stamps.shape[0], stamps.shape[1]
+            vals = exact[start:start + flat.size].reshape(flat.shape)
+            start += flat.size
+            rows = jnp.arange(n)[:, None]
+            stamps = stamps.reshape(n, -1).at[rows, flat].set(vals).reshape(n, side, side)
+        out[t].append((stamps, i0, j0, idx))
+    return out
 
 
 def scatter_stamps(stamps, i0, j0, weights, grid: Grid):
@@ -305,23 +346,8 @@ def stamp_groups(re_arcsec, n, pixel_arcsec: float, *, flux_fraction: float = 0.
 
 def grouped_stamps(clumps: Clumps, grid: Grid, groups, *, order: int = 3, core: int = 5,
                    strip: bool = False):
-    """Unit-flux stamps of every clump by stamp group: [(stamps, i0, j0, indices)]."""
-    out = []
-    cores = None
-    if groups and core > 0 and not strip:
-        # every exact core in one call: the incomplete gamma function compiles once
-        size = min(core, min(side for side, _ in groups))
-        every = jnp.concatenate([jnp.asarray(idx) for _, idx in groups])
-        cores = clump_cores(jax.tree_util.tree_map(lambda a: a[every], clumps), grid, size)
-        core = size
-    start = 0
-    for side, idx in groups:
-        sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
-        mine = None if cores is None else cores[start:start + len(idx)]
-        start += len(idx)
-        out.append(clump_stamps(sub, grid, side, order=order, core=core, strip=strip,
-                                cores=mine) + (idx,))
-    return out
+    """Unit-flux stamps of every clump on one grid by stamp group: [(stamps, i0, j0, indices)]."""
+    return grouped_stamps_on(clumps, [(grid, groups)], order=order, core=core, strip=strip)[0]
 
 
 def scatter_grouped(stamps, weights, grid: Grid):
@@ -335,8 +361,15 @@ def scatter_grouped(stamps, weights, grid: Grid):
 def clumps_image(clumps: Clumps, grid: Grid, groups, weights, *, order: int = 3, core: int = 5,
                  strip: bool = False):
     """Σ over clumps of weights[k, c] × their pixel-integrated light on `grid`: [ny, nx, C]."""
-    return scatter_grouped(grouped_stamps(clumps, grid, groups, order=order, core=core,
-                                          strip=strip), weights, grid)
+    return clumps_images(clumps, [(grid, groups)], weights, order=order, core=core,
+                         strip=strip)[0]
+
+
+def clumps_images(clumps: Clumps, targets, weights, *, order: int = 3, core: int = 5,
+                  strip: bool = False):
+    """`clumps_image` on each (grid, groups) of `targets`, sharing one exact-pixel kernel."""
+    stamps = grouped_stamps_on(clumps, targets, order=order, core=core, strip=strip)
+    return [scatter_grouped(st, weights, grid) for st, (grid, _) in zip(stamps, targets)]
 
 
 def stamp_size(re_arcsec_max: float, n_max: float, pixel_arcsec: float, *,
