@@ -28,7 +28,12 @@ clumps, the per-clump aperture flux error (apertures: the detector pixels where
 that clump dominates the reference image and holds ≥ 1e-4 of its peak). Errors
 in σ scale with the source's flux, which is stated per case.
 
-Run: ``python benchmarks/bench_accuracy.py [--parts sersic,lensed,psf] [--quick]``.
+- ``caustic``: one clump (R_e 1 mas) at distances β = 2–256 mas from the SIS point
+  caustic, rendered by hybrid, by the linear lens map wherever the rim test allows,
+  and by ray tracing: the error of linearisation against distance to the caustic.
+  Reference as for the lensed cases.
+
+Run: ``python benchmarks/bench_accuracy.py [--parts sersic,lensed,caustic,psf] [--quick]``.
 Writes benchmarks/results/accuracy.{json,md} and accuracy.png.
 """
 
@@ -136,7 +141,7 @@ def run_sersic(quick=False):
         t = time.perf_counter()
         model = build_model(s0, [SERSIC_BAND], field_arcsec=sersic_field(), accuracy=acc,
                             dtype=dtype)
-        out = C.block(RENDER(model, s0))
+        C.block(RENDER(model, s0))
         cold = time.perf_counter() - t
         warm = C.warm_time(RENDER, model, s0)
         mem = C.compiled_bytes(RENDER, model, s0)
@@ -296,6 +301,66 @@ def run_lensed(quick=False):
     return rows, meta
 
 
+# ============================================================ part 2b: linearisation vs caustic distance
+
+CAUSTIC_BETA_MAS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0)
+CAUSTIC_SETTINGS = {
+    "hybrid (default)": Accuracy(),
+    "linearised wherever the rim test allows (tolerance ∞)": Accuracy(linearise_tolerance=1e9),
+    "grid, 4² rays (ray-traced)": Accuracy(source_mode="grid"),
+}
+
+
+def run_caustic(quick=False):
+    """One clump (R_e 1 mas, n 1, q 0.7) at distance β from the SIS point caustic.
+
+    For each β: the clump alone, rendered by hybrid (linearised only when its images pass
+    the linearisation test), by the linear lens map wherever the rim test allows (the
+    tolerance off: what linearisation costs near the caustic), and by ray tracing (grid
+    mode, 4² rays per lens pixel), against every ray analytic at 16² rays per 1.25 mas
+    lens pixel. Linearisation's error grows as the clump nears the caustic (the lens
+    map's curvature across the clump's images, relative to their size); the rim test
+    (8 points on the clump's 99.99 % stamp circle with as many images as its centre)
+    refuses clumps whose stamp the caustic crosses.
+    """
+    sigma = sigma_of(LENS_BAND)
+    betas = CAUSTIC_BETA_MAS[::2] if quick else CAUSTIC_BETA_MAS
+    rows = []
+    for k, beta_mas in enumerate(betas):
+        phi = np.deg2rad(20.0 + 37.0 * k)
+        center = np.array([[np.cos(phi), np.sin(phi)]]) * beta_mas * 1e-3
+        src = Source(clumps=Clumps(jnp.asarray(center), jnp.asarray([[CLUMP_FLUX]]),
+                                   jnp.asarray([0.001]), jnp.asarray([1.0]), jnp.asarray([0.7]),
+                                   jnp.asarray([0.4])))
+        field = ((-1.4, 1.4), (-1.4, 1.4))
+        ref_model = lensed_model(src, field, Accuracy(lens_subsampling=16, source_mode="analytic"),
+                                 jnp.float64, 0.00025, lens_pixel=REF_LENS_PIXEL)
+        ref = np.asarray(RENDER(ref_model, src)[0])
+        del ref_model
+        for name, acc in CAUSTIC_SETTINGS.items():
+            t = time.perf_counter()
+            model = lensed_model(src, field, acc, jnp.float64, 0.00025)
+            img = np.asarray(C.block(RENDER(model, src))[0])
+            cold = time.perf_counter() - t
+            warm = C.warm_time(RENDER, model, src, repeats=3)
+            m = error_metrics(img, ref, sigma)
+            lin = model.lin_images
+            mu = float(ref.sum() / CLUMP_FLUX)
+            row = dict(case="caustic", knob=name, beta_mas=beta_mas, magnification=mu,
+                       linearised=bool(lin is not None and lin.count > 0),
+                       images=None if lin is None else int(lin.count), dtype="float64",
+                       clump_flux_err=float(abs(img.sum() / ref.sum() - 1)), cold_s=cold,
+                       warm_s=warm, **m)
+            rows.append(row)
+            print(f"  caustic β={beta_mas:g} mas μ={mu:.1f} {name:55s} linearised="
+                  f"{row['linearised']} max {m['max_err_sigma']:.3g}σ flux "
+                  f"{row['clump_flux_err']:.2e} warm {warm * 1e3:.1f} ms", flush=True)
+    meta = dict(clump="R_e 1 mas, n 1, q 0.7, flux 1 count/s", lens="SIS theta_E=1",
+                sigma=sigma, detector_pixel_arcsec=LENS_BAND.pixel_arcsec,
+                reference="analytic, lens pixel 1.25 mas, lens_subsampling=16, float64")
+    return rows, meta
+
+
 # ============================================================ part 3: PSF oversampling, truncation
 
 PSF_PIXEL = 0.1
@@ -381,11 +446,28 @@ def plot(rows, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    cases = [c for c in ("sersic", "lensed-near", "lensed-far", "psf")
+    cases = [c for c in ("sersic", "lensed-near", "lensed-far", "caustic", "psf")
              if any(r["case"] == c for r in rows)]
     fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.8), squeeze=False)
     for ax, case in zip(axes[0], cases):
         rs = [r for r in rows if r["case"] == case]
+        if case == "caustic":
+            # error against distance to the caustic, one line per setting
+            for knob in dict.fromkeys(r["knob"] for r in rs):
+                kr = [r for r in rs if r["knob"] == knob]
+                ax.plot([r["beta_mas"] for r in kr], [max(r["max_err_sigma"], 1e-12) for r in kr],
+                        "o-", ms=3, label=knob.split(" (")[0].split(",")[0])
+                lin = [r for r in kr if r["linearised"]]
+                ax.plot([r["beta_mas"] for r in lin], [max(r["max_err_sigma"], 1e-12) for r in lin],
+                        "k.", ms=2)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.axhline(1.0, color="k", lw=0.5, ls="--")
+            ax.set_xlabel("distance from the caustic β (mas)")
+            ax.set_ylabel("max |error| / σ_sky")
+            ax.set_title("clump near an SIS caustic (dots: linearised)", fontsize=9)
+            ax.legend(fontsize=6)
+            continue
         for r in rs:
             marker = "s" if r["dtype"] == "float32" else "o"
             group = (r.get("source_mode") or r.get("exact_core") or r.get("psf_side_pix"))
@@ -415,26 +497,33 @@ COLUMNS = [("knob", "setting"), ("dtype", "dtype"), ("max_err_sigma", "max |Δ|/
            ("cold_s", "cold s"), ("mem_mb", "XLA MiB")]
 
 
+CAUSTIC_COLUMNS = [("beta_mas", "β from caustic (mas)"), ("magnification", "μ"),
+                   ("knob", "setting"), ("linearised", "linearised"),
+                   ("max_err_sigma", "max |Δ|/σ"), ("max_err_rel_peak", "max |Δ|/peak"),
+                   ("clump_flux_err", "clump flux rel. err"), ("warm_s", "warm s")]
+
+
 def markdown(rows, meta):
     out = ["# Accuracy against time", "",
            "Generated by `benchmarks/bench_accuracy.py`. σ is the sky noise per detector pixel "
            "of the case's exposure; errors are against the converged reference of each case "
            "(see the JSON `meta` for its definition and its own convergence). Warm: median "
            "of repeated calls of the compiled render; cold: build + compile + first call.", ""]
-    for case in ("sersic", "lensed-near", "lensed-far", "psf"):
+    for case in ("sersic", "lensed-near", "lensed-far", "caustic", "psf"):
         rs = [r for r in rows if r["case"] == case]
         if not rs:
             continue
         out += [f"## {case}", "", "```", str({k: v for k, v in meta.get(case, {}).items()
                                               if k not in ("aperture_ref_flux",)}), "```", ""]
-        cols = [c for c in COLUMNS if any(r.get(c[0]) is not None for r in rs)]
+        cols = [c for c in CAUSTIC_COLUMNS if case == "caustic"] or COLUMNS
+        cols = [c for c in cols if any(r.get(c[0]) is not None for r in rs)]
         out += [C.markdown_table(rs, cols), ""]
     return "\n".join(out)
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--parts", default="sersic,lensed,psf")
+    ap.add_argument("--parts", default="sersic,lensed,caustic,psf")
     ap.add_argument("--quick", action="store_true", help="a few settings per part")
     args = ap.parse_args(argv)
     parts = args.parts.split(",")
@@ -448,13 +537,17 @@ def main(argv=None):
         r, m = run_lensed(args.quick)
         rows += r
         meta.update(m)
+    if "caustic" in parts:
+        r, m = run_caustic(args.quick)
+        rows += r
+        meta["caustic"] = m
     if "psf" in parts:
         r, m = run_psf(args.quick)
         rows += r
         meta["psf"] = m
     meta["total_s"] = time.perf_counter() - t0
     meta["peak_rss_mb"] = C.peak_rss_mb()
-    suffix = "" if parts == ["sersic", "lensed", "psf"] else "_" + "_".join(parts)
+    suffix = "" if parts == ["sersic", "lensed", "caustic", "psf"] else "_" + "_".join(parts)
     C.write_json("accuracy" + suffix, {"meta": meta, "rows": rows})
     C.write_text(f"accuracy{suffix}.md", markdown(rows, meta))
     plot(rows, C.RESULTS / f"accuracy{suffix}.png")

@@ -27,7 +27,7 @@ import numpy as np
 
 from . import convolve, noise, render, tiles
 from .errors import ConfigError, require
-from .lensing.linearised import (ClumpImages, bilinear_patch, lensed_clumps,
+from .lensing.linearised import (ClumpImages, FootprintIndex, bilinear_patch, lensed_clumps,
                                  linearisation_error, pixel_footprints, pixels_near, point_images)
 from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin_sparse, sparse_rebin_operators
 from .source import Source
@@ -226,18 +226,18 @@ def trace_corners(lens, hr_grid: Grid):
 
 
 def traced_pixels(corner_b1, corner_b2, center, radius):
-    """Rows and columns of lens-plane pixels whose light can come from the source disc.
+    """Rows and columns of lens-plane pixels whose light can come from the source disc,
+    and the `FootprintIndex` of their source-plane footprints.
 
     A pixel is traced when the disc (center, radius) comes within its
     source-plane footprint: the distance from the mean of its corners' β to the
     centre is below radius + the largest corner distance from that mean, so
     that thin, highly magnified images are not missed.
     """
-    ny, nx = corner_b1.shape[0] - 1, corner_b1.shape[1] - 1
-    rows, cols = (a.ravel() for a in np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij"))
-    m1, m2, reach = pixel_footprints(corner_b1, corner_b2, rows, cols)
+    m1, m2, reach = pixel_footprints(corner_b1, corner_b2)
     keep = np.hypot(m1 - center[0], m2 - center[1]) < radius + 1.01 * reach
-    return rows[keep], cols[keep]
+    rows, cols = np.nonzero(keep)
+    return rows, cols, FootprintIndex(m1[keep], m2[keep], reach[keep])
 
 
 def rays_in_pixels(corner_b1, corner_b2, rows, cols, offsets):
@@ -489,7 +489,8 @@ class SceneModel(eqx.Module):
     # -- detector ----------------------------------------------------------------
 
     def _unlensed_subgrid_image(self, source: Source, k: int, lay: _BandLayout, cache):
-        """Pixel-integrated source light on band k's sub-grid (unlensed scenes)."""
+        """Pixel-integrated source light on band k's sub-grid (unlensed scenes). `cache` holds
+        the images already made per sub-grid: hosts (made here), clumps (by band_images)."""
         g = lay.grid.subdivided(lay.oversampling)
         acc = self.accuracy
         key = ("host", g)
@@ -508,15 +509,8 @@ class SceneModel(eqx.Module):
                         if cache[key] else source.clumps.flux.dtype)
         for flux, unit in cache[key]:
             img = img + flux[k] * unit
-        cl = source.clumps
-        if cl is not None and cl.count > 0:
-            ckey = ("clumps", g)
-            if ckey not in cache:
-                # every band at once: bands on the same grid share the stamps
-                groups = tuple(zip(lay.stamp_sides, self.stamp_index_unlensed[k]))
-                cache[ckey] = render.clumps_image(cl, g, groups, cl.flux,
-                                                  order=acc.source_order, core=acc.exact_core)
-            img = img + cache[ckey][..., k]
+        if ("clumps", g) in cache:
+            img = img + cache[("clumps", g)][..., k]
         return img
 
     def _observe_subgrid(self, sub, k: int, lay: _BandLayout):
@@ -574,6 +568,20 @@ class SceneModel(eqx.Module):
                 out.append(self._observe_subgrid(sub, k, lay))
         else:
             cache = {}
+            cl = source.clumps
+            if cl is not None and cl.count > 0:
+                # every band and every sub-grid at once: one exact-pixel kernel, and bands
+                # on the same grid share the stamps
+                first = {}
+                for k, lay in enumerate(self.layouts):
+                    first.setdefault(lay.grid.subdivided(lay.oversampling), k)
+                targets = [(g, tuple(zip(self.layouts[k].stamp_sides,
+                                         self.stamp_index_unlensed[k])))
+                           for g, k in first.items()]
+                images = render.clumps_images(cl, targets, cl.flux,
+                                              order=self.accuracy.source_order,
+                                              core=self.accuracy.exact_core)
+                cache.update({("clumps", g): img for (g, _), img in zip(targets, images)})
             for k, lay in enumerate(self.layouts):
                 sub = self._unlensed_subgrid_image(source, k, lay, cache)
                 out.append(self._observe_subgrid(sub, k, lay))
@@ -680,7 +688,7 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     y_hi = max(l.grid.y_range[1] for l in layouts)
     hr = Grid.covering((x_lo, x_hi), (y_lo, y_hi), lens_pixel_arcsec)
     corner_b1, corner_b2 = trace_corners(lens, hr)
-    rows, cols = traced_pixels(corner_b1, corner_b2, center, radius)
+    rows, cols, footprint_index = traced_pixels(corner_b1, corner_b2, center, radius)
     if rows.size == 0:
         raise ConfigError("render.field_arcsec", field_arcsec,
                           "a lens-plane field where the source lands (no pixel of it maps "
@@ -691,7 +699,7 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     if has_clumps and accuracy.source_mode == "hybrid" and accuracy.linearise_tolerance > 0:
         tol = accuracy.linearise_tolerance * min(l.grid.pixel_arcsec for l in layouts)
         lin_mask, images = _linearise_clumps(source.clumps, corner_b1, corner_b2, hr, rows, cols,
-                                             accuracy, tol, dtype)
+                                             footprint_index, accuracy, tol, dtype)
         traced_clumps = np.nonzero(~lin_mask)[0]
         lin = _linearised_layout(source, images, layouts, hr, accuracy)
     # rays: every traced pixel when every ray needs a value; otherwise only the pixels
@@ -705,7 +713,8 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                    if traced_clumps.size else np.zeros(0))
         _, pix = pixels_near(corner_b1, corner_b2, rows, cols,
                              np.asarray(cl.center_arcsec, float)[traced_clumps]
-                             if traced_clumps.size else np.zeros((0, 2)), r_stamp)
+                             if traced_clumps.size else np.zeros((0, 2)), r_stamp,
+                             footprint_index)
         ray_pixels = np.unique(pix)
     sel = ray_pixels
     ray_window = ((int(rows[sel].min()), int(rows[sel].max()) + 1,
@@ -750,8 +759,8 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                       ray_window=ray_window, **lin)
 
 
-def _linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, accuracy: Accuracy,
-                      tolerance_arcsec: float, dtype):
+def _linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, footprint_index,
+                      accuracy: Accuracy, tolerance_arcsec: float, dtype):
     """Which clumps the local linear lens map renders well, and their images.
 
     A clump is linearised when every image of its centre has a linearisation error
@@ -768,7 +777,8 @@ def _linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, accura
     ang = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
     rim = cc[:, None, :] + r_stamp[:, None, None] * np.stack([np.cos(ang), np.sin(ang)], -1)
     pidx, theta, A = point_images(corner_b1, corner_b2, hr, rows, cols,
-                                  np.concatenate([cc, rim.reshape(-1, 2)]))
+                                  np.concatenate([cc, rim.reshape(-1, 2)]),
+                                  index=footprint_index)
     counts = np.bincount(pidx, minlength=9 * N)
     ok = np.all(counts[N:].reshape(N, 8) == counts[:N, None], axis=1)
     centre = pidx < N

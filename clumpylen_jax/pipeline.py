@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Optional
 
 import jax
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -227,7 +228,8 @@ def _sample_catalog(scene, bulge, disk, cosmology):
         raise ConfigError(f"source.{host_name}.mass_msun", None,
                           "the host's mass (clumps take mass_fraction of it)")
     if host_name == "disk":
-        mean = render.disk_modulation_mean(host_tree)
+        # one compiled quadrature, not hundreds of op-by-op dispatches
+        mean = eqx.filter_jit(render.disk_modulation_mean)(host_tree)
         fn = jax.jit(lambda x, y: render.disk_unit_brightness(host_tree, x, y, mean))
         geo = host_tree.sersic
     else:

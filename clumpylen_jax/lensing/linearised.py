@@ -129,32 +129,56 @@ def _pixel_corners(corner_b1, corner_b2, rows, cols):
             np.stack([corner_b2[a, b] for a, b in q], -1))
 
 
-def pixel_footprints(corner_b1, corner_b2, rows, cols):
+def pixel_footprints(corner_b1, corner_b2, rows=None, cols=None):
     """Centre (mean of the corners' β) and reach (largest corner distance from it) of the
-    source-plane footprints of lens-plane pixels (rows, cols): three [M] arrays."""
-    v1, v2 = _pixel_corners(corner_b1, corner_b2, rows, cols)
-    m1 = v1.mean(-1)
-    m2 = v2.mean(-1)
-    return m1, m2, np.max(np.hypot(v1 - m1[:, None], v2 - m2[:, None]), axis=-1)
+    source-plane footprints of lens-plane pixels (rows, cols): three [M] arrays; without
+    rows and cols, of every pixel of the grid: three [ny, nx] arrays."""
+    if rows is None:
+        v1 = (corner_b1[:-1, :-1], corner_b1[:-1, 1:], corner_b1[1:, :-1], corner_b1[1:, 1:])
+        v2 = (corner_b2[:-1, :-1], corner_b2[:-1, 1:], corner_b2[1:, :-1], corner_b2[1:, 1:])
+    else:
+        q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
+        v1 = tuple(corner_b1[r, c] for r, c in q)
+        v2 = tuple(corner_b2[r, c] for r, c in q)
+    m1 = 0.25 * (v1[0] + v1[1] + v1[2] + v1[3])
+    m2 = 0.25 * (v2[0] + v2[1] + v2[2] + v2[3])
+    reach2 = np.zeros_like(m1)
+    for a1, a2 in zip(v1, v2):
+        np.maximum(reach2, (a1 - m1) ** 2 + (a2 - m2) ** 2, out=reach2)
+    return m1, m2, np.sqrt(reach2)
 
 
-def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii):
+class FootprintIndex:
+    """Source-plane footprints (centres m1, m2 and reaches, [M] each, arcsec) of lens-plane
+    pixels, with one KD tree per octave of reach, so that a few huge footprints (near a
+    lens centre) do not widen every query. Built once, queried by `pixels_near`."""
+
+    def __init__(self, m1, m2, reach):
+        self.m1, self.m2, self.reach = m1, m2, reach
+        level = np.floor(np.log2(np.maximum(reach, 1e-300))).astype(int)
+        self.levels = []
+        for lv in np.unique(level):
+            members = np.nonzero(level == lv)[0]
+            self.levels.append((members, cKDTree(np.stack([m1[members], m2[members]], -1)),
+                                reach[members].max()))
+
+
+def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii, index=None):
     """Pairs (disc index [L], pixel index [L]) of source-plane discs (centers [P, 2], radii [P],
-    arcsec) and lens-plane pixels (rows, cols) whose footprint comes within the disc."""
-    m1, m2, reach = pixel_footprints(corner_b1, corner_b2, np.asarray(rows), np.asarray(cols))
+    arcsec) and lens-plane pixels (rows, cols) whose footprint comes within the disc.
+    index: the pixels' `FootprintIndex`, when already made."""
+    if index is None:
+        index = FootprintIndex(*pixel_footprints(corner_b1, corner_b2, np.asarray(rows),
+                                                 np.asarray(cols)))
+    m1, m2, reach = index.m1, index.m2, index.reach
     centers = np.asarray(centers, float).reshape(-1, 2)
     radii = np.asarray(radii, float)
     none = (np.zeros(0, int), np.zeros(0, int))
     if m1.size == 0 or centers.shape[0] == 0:
         return none
-    # one tree per octave of footprint size, so that a few huge footprints (near a
-    # lens centre) do not widen every query
-    level = np.floor(np.log2(np.maximum(reach, 1e-300))).astype(int)
     pis, mis = [], []
-    for lv in np.unique(level):
-        members = np.nonzero(level == lv)[0]
-        tree = cKDTree(np.stack([m1[members], m2[members]], -1))
-        cand = tree.query_ball_point(centers, r=radii + 1.01 * reach[members].max() + 1e-12)
+    for members, tree, widest in index.levels:
+        cand = tree.query_ball_point(centers, r=radii + 1.01 * widest + 1e-12)
         pi = np.repeat(np.arange(centers.shape[0]), [len(c) for c in cand])
         if pi.size:
             pis.append(pi)
@@ -167,7 +191,8 @@ def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii):
     return pi[near], mi[near]
 
 
-def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_pixels=0.5):
+def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_pixels=0.5,
+                 index=None):
     """Every image of each source-plane point inside the given lens-plane pixels.
 
     corner_b1/2: β at the grid's pixel corners ([ny + 1, nx + 1]); rows, cols: the pixels
@@ -181,17 +206,21 @@ def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_
     h = grid.pixel_arcsec
     rows = np.asarray(rows)
     cols = np.asarray(cols)
-    v1, v2 = _pixel_corners(corner_b1, corner_b2, rows, cols)
-    pi, mi = pixels_near(corner_b1, corner_b2, rows, cols, points, np.zeros(points.shape[0]))
+    pi, mi = pixels_near(corner_b1, corner_b2, rows, cols, points, np.zeros(points.shape[0]),
+                         index)
     if pi.size == 0:
         return np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
+    # corners of the candidate pixels only, indexed like them
+    cand, at = np.unique(mi, return_inverse=True)
+    v1, v2 = _pixel_corners(corner_b1, corner_b2, rows[cand], cols[cand])
+    v1, v2 = v1[at], v2[at]
     # the two triangles (00, 01, 11) and (00, 11, 10) in pixel units (fx, fy)
     found_p, found_m, found_f = [], [], []
     for tri, pts in (((0, 1, 3), ((0, 0), (1, 0), (1, 1))), ((0, 3, 2), ((0, 0), (1, 1), (0, 1)))):
         a, b, c = tri
-        e1 = np.stack([v1[mi, b] - v1[mi, a], v2[mi, b] - v2[mi, a]], -1)
-        e2 = np.stack([v1[mi, c] - v1[mi, a], v2[mi, c] - v2[mi, a]], -1)
-        d = np.stack([points[pi, 0] - v1[mi, a], points[pi, 1] - v2[mi, a]], -1)
+        e1 = np.stack([v1[:, b] - v1[:, a], v2[:, b] - v2[:, a]], -1)
+        e2 = np.stack([v1[:, c] - v1[:, a], v2[:, c] - v2[:, a]], -1)
+        d = np.stack([points[pi, 0] - v1[:, a], points[pi, 1] - v2[:, a]], -1)
         det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
         ok = np.abs(det) > 1e-30
         det = np.where(ok, det, 1.0)
@@ -226,9 +255,10 @@ def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_
     order = np.lexsort((theta[:, 1], theta[:, 0], pidx))
     pidx, theta, A = pidx[order], theta[order], A[order]
     keep = np.ones(pidx.size, bool)
-    for k in range(1, pidx.size):
-        same = (pidx[:k] == pidx[k]) & keep[:k]
-        if np.any(same & (np.hypot(*(theta[:k] - theta[k]).T) < merge_pixels * h)):
+    first = np.searchsorted(pidx, pidx)       # sorted by point: its images are contiguous
+    for k in np.nonzero(first < np.arange(pidx.size))[0]:
+        prev = slice(first[k], k)
+        if np.any(keep[prev] & (np.hypot(*(theta[prev] - theta[k]).T) < merge_pixels * h)):
             keep[k] = False
     return pidx[keep], theta[keep], A[keep]
 
