@@ -305,6 +305,7 @@ def run_lensed(quick=False):
 
 CAUSTIC_BETA_MAS = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0)
 CAUSTIC_SETTINGS = {
+    "reference's own convergence: analytic, 12² rays": "convergence",
     "hybrid (default)": Accuracy(),
     "linearised wherever the rim test allows (tolerance ∞)": Accuracy(linearise_tolerance=1e9),
     "grid, 4² rays (ray-traced)": Accuracy(source_mode="grid"),
@@ -339,7 +340,12 @@ def run_caustic(quick=False):
         del ref_model
         for name, acc in CAUSTIC_SETTINGS.items():
             t = time.perf_counter()
-            model = lensed_model(src, field, acc, jnp.float64, 0.00025)
+            if acc == "convergence":
+                model = lensed_model(src, field, Accuracy(lens_subsampling=12,
+                                                          source_mode="analytic"),
+                                     jnp.float64, 0.00025, lens_pixel=REF_LENS_PIXEL)
+            else:
+                model = lensed_model(src, field, acc, jnp.float64, 0.00025)
             img = np.asarray(C.block(RENDER(model, src))[0])
             cold = time.perf_counter() - t
             warm = C.warm_time(RENDER, model, src, repeats=3)
@@ -444,6 +450,7 @@ def run_psf(quick=False):
 
 def plot(rows, path):
     import matplotlib
+    import matplotlib.ticker
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     cases = [c for c in ("sersic", "lensed-near", "lensed-far", "caustic", "psf")
@@ -453,10 +460,12 @@ def plot(rows, path):
         rs = [r for r in rows if r["case"] == case]
         if case == "caustic":
             # error against distance to the caustic, one line per setting
-            for knob in dict.fromkeys(r["knob"] for r in rs):
+            for k, knob in enumerate(dict.fromkeys(r["knob"] for r in rs)):
                 kr = [r for r in rs if r["knob"] == knob]
+                # hybrid coincides with ray tracing until it linearises: dashed, on top
                 ax.plot([r["beta_mas"] for r in kr], [max(r["max_err_sigma"], 1e-12) for r in kr],
-                        "o-", ms=3, label=knob.split(" (")[0].split(",")[0])
+                        ("-", "--", "-", "-")[k % 4], marker="o", ms=3, zorder=3 - (k != 1),
+                        label=knob.split(" (")[0].split(",")[0])
                 lin = [r for r in kr if r["linearised"]]
                 ax.plot([r["beta_mas"] for r in lin], [max(r["max_err_sigma"], 1e-12) for r in lin],
                         "k.", ms=2)
@@ -479,6 +488,7 @@ def plot(rows, path):
                         alpha=0.7)
             del group
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # no crowded labels
         ax.set_yscale("log")
         ax.axhline(1.0, color="k", lw=0.5, ls="--")
         ax.axhline(0.1, color="k", lw=0.5, ls=":")

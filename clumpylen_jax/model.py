@@ -329,7 +329,7 @@ class SceneModel(eqx.Module):
         """Bands per source-plane grid: as many as fit in ~0.5 GB."""
         return int(max(1, min(nb, 5.0e8 // (8 * self.clump_tile_layout.size))))
 
-    def _clump_values(self, source: Source, nb: int, block: int = 1 << 17):
+    def _clump_values(self, source: Source, nb: int, stamps=None, block: int = 1 << 17):
         """Clump light [B, M] of every traced pixel, from the source-plane grid.
 
         Sequential over groups of bands (one grid in memory at a time) and over
@@ -352,9 +352,10 @@ class SceneModel(eqx.Module):
         xs, ys = (blocks(x) for x in self._ray_positions())
 
         # the stamps hold unit flux: made once, scattered with each group of bands' fluxes
-        stamps = render.grouped_stamps(source.clumps, g, self._clump_groups(),
-                                       order=self.accuracy.source_order,
-                                       core=self.accuracy.exact_core)
+        if stamps is None:
+            stamps = render.grouped_stamps(source.clumps, g, self._clump_groups(),
+                                           order=self.accuracy.source_order,
+                                           core=self.accuracy.exact_core)
 
         def one_chunk(f):
             store = self._clump_tiles(stamps, f)
@@ -394,35 +395,55 @@ class SceneModel(eqx.Module):
         area = self.hr_grid.pixel_arcsec**2
         return jnp.stack(units, -1) * area, jnp.stack(fluxes, 0)
 
-    def _clump_ray_values(self, source: Source):
-        """Ray-traced clump flux [B, P] of the pixels with rays (counts/s), or None."""
+    def _clump_ray_values(self, source: Source, stamps=None):
+        """Ray-traced clump flux [B, P] of the pixels with rays (counts/s), or None.
+        stamps: the ray-traced clumps' source-grid stamps, when already made."""
         if source.clumps is None or source.clumps.count == 0:
             return None
         if self.accuracy.source_mode == "analytic":
             vals = render.clumps_brightness(source.clumps, self.beta1, self.beta2) @ self.ray_weights
         elif self.clump_grid is not None:
-            vals = self._clump_values(source, _n_bands(source))
+            vals = self._clump_values(source, _n_bands(source), stamps)
         else:
             return None
         return vals * self.hr_grid.pixel_arcsec**2
 
-    def _clump_window(self, source: Source):
+    def _clump_window(self, source: Source, stamps=None):
         """Ray-traced clumps on the window of hr_grid holding the rays: [h, w, B], or None."""
-        vals = self._clump_ray_values(source)
+        vals = self._clump_ray_values(source, stamps)
         if vals is None:
             return None
         r0, r1, c0, c1 = self.ray_window
         img = jnp.zeros((r1 - r0, c1 - c0, vals.shape[0]), vals.dtype)
         return img.at[self.ray_rows - r0, self.ray_cols - c0].set(vals.T)
 
-    def _lensed_clump_images(self, source: Source, targets):
-        """Linearised clump images on each (grid, sides, index) of `targets`, every band:
-        [ny, nx, B] counts/s per pixel each (one exact-pixel kernel for all grids)."""
-        lin = lensed_clumps(source.clumps, self.lin_images)
-        return render.clumps_images(lin, [(g, tuple(zip(sides, index))) for g, sides, index
-                                          in targets], lin.flux,
-                                    order=self.accuracy.source_order,
-                                    core=self.accuracy.exact_core, strip=True)
+    def _clump_stamps(self, source: Source, grids):
+        """Linearised clump images on each (grid, sides, index) of `grids` ([ny, nx, B] counts/s
+        per pixel each; [] without linearised clumps) and the ray-traced clumps' stamps on the
+        source grid (None without them), made in one call: one exact-pixel kernel for all."""
+        acc = self.accuracy
+        cl = source.clumps
+        traced = (self.clump_grid is not None and acc.source_mode != "analytic"
+                  and cl is not None and cl.count > 0)
+        lin = lensed_clumps(cl, self.lin_images) if self._has_linearised(source) else None
+        if lin is None and not traced:
+            return [], None
+        k = 0 if lin is None else lin.count
+        sets = [c for c in (lin, cl if traced else None) if c is not None]
+        both = sets[0] if len(sets) == 1 else jax.tree_util.tree_map(
+            lambda a, b: jnp.concatenate([a, b]), *sets)
+        targets = [] if lin is None else [(g, tuple(zip(sides, index)), True)
+                                          for g, sides, index in grids]
+        if traced:
+            targets.append((self.clump_grid, tuple((side, idx + k) for side, idx
+                                                   in self._clump_groups()), False))
+        stamps = render.grouped_stamps_on(both, targets, order=acc.source_order,
+                                          core=acc.exact_core)
+        images = ([] if lin is None else
+                  [render.scatter_grouped(st, lin.flux, g) for st, (g, _, _)
+                   in zip(stamps, targets)])
+        return images, ([(st, i0, j0, idx - k) for st, i0, j0, idx in stamps[-1]]
+                        if traced else None)
 
     def _has_linearised(self, source: Source):
         return (self.lin_images is not None and self.lin_images.count > 0
@@ -477,13 +498,15 @@ class SceneModel(eqx.Module):
         units, fluxes = self._host_values(source)
         if units is not None:
             img = img.at[self.traced_rows, self.traced_cols].set(units @ fluxes)
-        win = self._clump_window(source)
+        lin, traced = self._clump_stamps(
+            source, [(self.hr_grid, self.lin_hr_sides, self.lin_hr_index)]
+            if self.lin_hr_sides else [])
+        win = self._clump_window(source, traced)
         if win is not None:
             r0, r1, c0, c1 = self.ray_window
             img = img.at[r0:r1, c0:c1].add(win)
-        if self._has_linearised(source):
-            img = img + self._lensed_clump_images(
-                source, [(self.hr_grid, self.lin_hr_sides, self.lin_hr_index)])[0]
+        if lin:
+            img = img + lin[0]
         return jnp.moveaxis(img, -1, 0)
 
     # -- detector ----------------------------------------------------------------
@@ -533,16 +556,15 @@ class SceneModel(eqx.Module):
             if units is not None:
                 hosts = jnp.zeros(self.hr_grid.shape + (units.shape[1],), units.dtype)
                 hosts = hosts.at[self.traced_rows, self.traced_cols].set(units)
-            win = self._clump_window(source)
             r0, r1, c0, c1 = self.ray_window
-            lin = {}
-            if self._has_linearised(source):
-                first = {}       # bands on the same sub-grid share every image on it
-                for k, lay in enumerate(self.layouts):
-                    first.setdefault(lay.grid.subdivided(lay.oversampling), k)
-                lin = dict(zip(first, self._lensed_clump_images(
-                    source, [(g, self.lin_stamp_sides[k], self.lin_stamp_index[k])
-                             for g, k in first.items()])))
+            first = {}       # bands on the same sub-grid share every image on it
+            for k, lay in enumerate(self.layouts):
+                first.setdefault(lay.grid.subdivided(lay.oversampling), k)
+            images, traced = self._clump_stamps(
+                source, [(g, self.lin_stamp_sides[k], self.lin_stamp_index[k])
+                         for g, k in first.items()] if self.lin_stamp_sides else [])
+            lin = dict(zip(first, images))
+            win = self._clump_window(source, traced)
             cache = {}
             for k, lay in enumerate(self.layouts):
                 g = lay.grid.subdivided(lay.oversampling)
