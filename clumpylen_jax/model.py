@@ -289,7 +289,8 @@ class SceneModel(eqx.Module):
     stamp_index_unlensed: tuple = ()
     # rays exist for the traced pixels (ray_rows, ray_cols) (all of them, or those reaching
     # a ray-traced clump), which lie in the window rows r0:r1, cols c0:c1 of hr_grid;
-    # linearised clump images and their stamp groups on each band's sub-grid and on hr_grid
+    # linearised clump images and their stamp groups ((side, strip) and indices) on each
+    # band's sub-grid and on hr_grid
     ray_rows: Optional[jnp.ndarray] = None
     ray_cols: Optional[jnp.ndarray] = None
     ray_window: tuple = eqx.field(static=True, default=(0, 0, 0, 0))
@@ -432,8 +433,9 @@ class SceneModel(eqx.Module):
         sets = [c for c in (lin, cl if traced else None) if c is not None]
         both = sets[0] if len(sets) == 1 else jax.tree_util.tree_map(
             lambda a, b: jnp.concatenate([a, b]), *sets)
-        targets = [] if lin is None else [(g, tuple(zip(sides, index)), True)
-                                          for g, sides, index in grids]
+        targets = [] if lin is None else [
+            (g, tuple((side, idx, strip) for (side, strip), idx in zip(sides, index)), True)
+            for g, sides, index in grids]
         if traced:
             targets.append((self.clump_grid, tuple((side, idx + k) for side, idx
                                                    in self._clump_groups()), False))
@@ -828,8 +830,14 @@ def _linearised_layout(source: Source, images: ClumpImages, layouts, hr: Grid, a
     n = np.asarray(lensed.n)
 
     def groups(pixel):
-        g = render.stamp_groups(re, n, pixel, flux_fraction=accuracy.stamp_flux_fraction)
-        return tuple(s for s, _ in g), tuple(jnp.asarray(i) for _, i in g)
+        # (side, strip) groups: the exact strip only for images with light beyond the core
+        need = render.strip_needed(re, n, pixel, accuracy.exact_core)
+        g = [((side, bool(flag)), idx[need[idx] == flag])
+             for side, idx in render.stamp_groups(re, n, pixel,
+                                                  flux_fraction=accuracy.stamp_flux_fraction)
+             for flag in (True, False)]
+        g = [(key, idx) for key, idx in g if idx.size]
+        return tuple(k for k, _ in g), tuple(jnp.asarray(i) for _, i in g)
 
     per_pixel = {}
     sides, index = [], []

@@ -264,7 +264,8 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                       strip: bool = False):
     """Unit-flux stamps of clumps on several grids: for each (grid, groups) or
     (grid, groups, strip) of `targets`, [(stamps [n, side, side], i0, j0, indices)] by
-    stamp group (indices into `clumps`; a target's own strip overrides `strip`).
+    stamp group (indices into `clumps`). A group (side, indices, strip) or a target's own
+    strip overrides `strip`.
 
     Pixels are Gauss–Legendre sampled (order²) except a block of core² pixels around the
     centre, integrated exactly. strip=True integrates exactly instead the 3·stamp + core²
@@ -278,8 +279,8 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
     parts, which, x_lo, y_lo, pix = [], [], [], [], []
     for t, (grid, groups, *own) in enumerate(targets):
         p = grid.pixel_arcsec
-        thin = own[0] if own else strip
-        for side, idx in groups:
+        for side, idx, *group_strip in groups:
+            thin = group_strip[0] if group_strip else own[0] if own else strip
             idx = jnp.asarray(idx)
             sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
             stamps, i0, j0, xc, yc = _sampled_stamps(sub, b[idx], grid, side, order)
@@ -344,6 +345,20 @@ def stamp_groups(re_arcsec, n, pixel_arcsec: float, *, flux_fraction: float = 0.
                      for r, k in zip(re, n)])
     sides = np.array([next((s for s in _STAMP_SIDES if s >= k), int(k + k % 2)) for k in need])
     return [(int(side), np.nonzero(sides == side)[0]) for side in np.unique(sides)]
+
+
+def strip_needed(re_arcsec, n, pixel_arcsec: float, core: int, *, margin: float = 1.25,
+                 beyond: float = 1e-4):
+    """Which profiles (numpy [N] of R_e, arcsec, and n) put more than `beyond` of their light
+    outside the exact core block (radius (core // 2) pixels from the centre, R_e enlarged
+    by `margin` for fits that grow it): those need the exact strip along their major axis
+    when thin; the others' light beyond the core is too little for sampling to matter."""
+    from scipy.special import gammaincc, gammaincinv
+    re = np.asarray(re_arcsec, float) * margin
+    n = np.asarray(n, float)
+    b = gammaincinv(2 * n, 0.5)
+    r = (core // 2) * pixel_arcsec
+    return gammaincc(2 * n, b * (r / re) ** (1 / n)) > beyond
 
 
 def grouped_stamps(clumps: Clumps, grid: Grid, groups, *, order: int = 3, core: int = 5,
