@@ -16,6 +16,7 @@ default, ``HYPOTHESIS_PROFILE=thorough`` for a long run by hand.
 from __future__ import annotations
 
 import math
+import os
 
 import equinox as eqx
 import jax
@@ -308,15 +309,17 @@ def test_only_an_empty_clump_list_is_a_config_error():
                     field_arcsec=SERSIC_FIELD)
 
 
-MANY = 3_000
+# the thorough profile (run by hand) takes the 1e5 clumps of the issue: 6 min and 4.8 GB
+# for the float64 gradient on 2 cores; CI takes 3000
+MANY = 100_000 if os.environ.get("HYPOTHESIS_PROFILE") == "thorough" else 3_000
 
 
 @pytest.mark.parametrize("dtype", [jnp.float64])
-def test_ten_thousand_clumps_cheap_and_conserving(dtype):
-    """1e4 small clumps (R_e ≤ 0.1 pixel, inside the exact 3 × 3 core): finite, flux conserved,
-    gradients finite.
+def test_many_clumps_cheap_and_conserving(dtype):
+    """3000 (thorough profile: 1e5) small clumps (R_e ≤ 0.1 pixel, inside the exact 3 × 3
+    core): finite, flux conserved, gradients finite.
 
-    1e5 clumps are timed in benchmarks/ (bench_scaling.py), not here.
+    Their time and memory are measured in benchmarks/ (bench_scaling.py).
     """
     rng = np.random.default_rng(3)
     cl = Clumps(jnp.asarray(rng.uniform(-2.4, 2.4, (MANY, 2))),
@@ -328,7 +331,7 @@ def test_ten_thousand_clumps_cheap_and_conserving(dtype):
                     accuracy=Accuracy(source_order=2, exact_core=3, stamp_flux_fraction=0.999),
                     dtype=dtype)
     (_, imgs), grads = value_and_grad_fn(m)(src)
-    assert_finite_and_dtype(imgs, grads, dtype, "1e4 clumps")
+    assert_finite_and_dtype(imgs, grads, dtype, f"{MANY} clumps")
     total = float(np.sum(np.asarray(imgs[0], np.float64)))
     expected = float(np.sum(np.asarray(cl.flux)))
     assert total == pytest.approx(expected, rel=2e-3 if dtype == jnp.float64 else 5e-3)
