@@ -434,15 +434,15 @@ class SceneModel(eqx.Module):
         both = sets[0] if len(sets) == 1 else jax.tree_util.tree_map(
             lambda a, b: jnp.concatenate([a, b]), *sets)
         targets = [] if lin is None else [
-            (g, tuple((side, idx, strip) for (side, strip), idx in zip(sides, index)), True)
+            (g, tuple((side, idx, strip) for (side, strip), idx in zip(sides, index)))
             for g, sides, index in grids]
-        if traced:
+        if traced:   # exact cores, not strips (strip=False below)
             targets.append((self.clump_grid, tuple((side, idx + k) for side, idx
-                                                   in self._clump_groups()), False))
+                                                   in self._clump_groups())))
         stamps = render.grouped_stamps_on(both, targets, order=acc.source_order,
                                           core=acc.exact_core)
         images = ([] if lin is None else
-                  [render.scatter_grouped(st, lin.flux, g) for st, (g, _, _)
+                  [render.scatter_grouped(st, lin.flux, g) for st, (g, _)
                    in zip(stamps, targets)])
         return images, ([(st, i0, j0, idx - k) for st, i0, j0, idx in stamps[-1]]
                         if traced else None)
@@ -538,6 +538,14 @@ class SceneModel(eqx.Module):
             img = img + cache[("clumps", g)][..., k]
         return img
 
+    def _first_band_per_subgrid(self):
+        """{sub-grid: index of its first band}: bands on the same sub-grid share every
+        image made on it."""
+        first = {}
+        for k, lay in enumerate(self.layouts):
+            first.setdefault(lay.grid.subdivided(lay.oversampling), k)
+        return first
+
     def _observe_subgrid(self, sub, k: int, lay: _BandLayout):
         """PSF and detector pixels: sub-grid flux image → detector counts/s (no sky)."""
         s = lay.oversampling
@@ -559,9 +567,7 @@ class SceneModel(eqx.Module):
                 hosts = jnp.zeros(self.hr_grid.shape + (units.shape[1],), units.dtype)
                 hosts = hosts.at[self.traced_rows, self.traced_cols].set(units)
             r0, r1, c0, c1 = self.ray_window
-            first = {}       # bands on the same sub-grid share every image on it
-            for k, lay in enumerate(self.layouts):
-                first.setdefault(lay.grid.subdivided(lay.oversampling), k)
+            first = self._first_band_per_subgrid()
             images, traced = self._clump_stamps(
                 source, [(g, self.lin_stamp_sides[k], self.lin_stamp_index[k])
                          for g, k in first.items()] if self.lin_stamp_sides else [])
@@ -596,9 +602,7 @@ class SceneModel(eqx.Module):
             if cl is not None and cl.count > 0:
                 # every band and every sub-grid at once: one exact-pixel kernel, and bands
                 # on the same grid share the stamps
-                first = {}
-                for k, lay in enumerate(self.layouts):
-                    first.setdefault(lay.grid.subdivided(lay.oversampling), k)
+                first = self._first_band_per_subgrid()
                 targets = [(g, tuple(zip(self.layouts[k].stamp_sides,
                                          self.stamp_index_unlensed[k])))
                            for g, k in first.items()]

@@ -282,10 +282,9 @@ def _exact_fluxes(clumps: Clumps, b, which, x_lo, y_lo, pixel):
 
 def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                       strip: bool = False):
-    """Unit-flux stamps of clumps on several grids: for each (grid, groups) or
-    (grid, groups, strip) of `targets`, [(stamps [n, side, side], i0, j0, indices)] by
-    stamp group (indices into `clumps`). A group (side, indices, strip) or a target's own
-    strip overrides `strip`.
+    """Unit-flux stamps of clumps on several grids: for each (grid, groups) of `targets`,
+    [(stamps [n, side, side], i0, j0, indices)] by stamp group (indices into `clumps`). A
+    group given as (side, indices, strip) overrides `strip`.
 
     Pixels are Gauss–Legendre sampled (order²) except a block of core² pixels around the
     centre, integrated exactly. strip=True integrates exactly instead the 3·stamp + core²
@@ -297,10 +296,10 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
     dtype = jnp.result_type(clumps.re_arcsec)
     b = profiles.sersic_b(clumps.n)
     parts, which, x_lo, y_lo, pix = [], [], [], [], []
-    for t, (grid, groups, *own) in enumerate(targets):
+    for t, (grid, groups) in enumerate(targets):
         p = grid.pixel_arcsec
         for side, idx, *group_strip in groups:
-            thin = group_strip[0] if group_strip else own[0] if own else strip
+            thin = group_strip[0] if group_strip else strip
             idx = jnp.asarray(idx)
             sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
             stamps, i0, j0, xc, yc = _sampled_stamps(sub, b[idx], grid, side, order)
@@ -406,7 +405,7 @@ def clumps_images(clumps: Clumps, targets, weights, *, order: int = 3, core: int
                   strip: bool = False):
     """`clumps_image` on each (grid, groups) of `targets`, sharing one exact-pixel kernel."""
     stamps = grouped_stamps_on(clumps, targets, order=order, core=core, strip=strip)
-    return [scatter_grouped(st, weights, target[0]) for st, target in zip(stamps, targets)]
+    return [scatter_grouped(st, weights, grid) for st, (grid, _) in zip(stamps, targets)]
 
 
 def stamp_size(re_arcsec_max: float, n_max: float, pixel_arcsec: float, *,
