@@ -16,6 +16,8 @@ in the clump parameters): `lensed_clumps`.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -32,16 +34,27 @@ class ClumpImages(eqx.Module):
     clump_index: [K] which clump each image belongs to.  theta0: [K, 2] image
     position (arcsec, lens plane) of the clump centre at build time.  beta0: [K, 2]
     that centre (arcsec, source plane).  jacobian: [K, 2, 2] A = ∂β/∂θ there.
+    flux_scale: [K] |μ| averaged over the clump's light / |μ| at its centre, or None (1):
+    the lens Jacobian varies across an image (the bilinear map's cells are ~ an image's
+    size), and the image's flux follows the average, not the centre's value.
     """
 
     clump_index: jnp.ndarray
     theta0: jnp.ndarray
     beta0: jnp.ndarray
     jacobian: jnp.ndarray
+    flux_scale: Optional[jnp.ndarray] = None
 
     @property
     def count(self):
         return self.clump_index.shape[0]
+
+
+def image_magnifications(images: ClumpImages, dtype):
+    """|μ| of each image as rendered: the centre's, times the light-averaged correction."""
+    A = images.jacobian.astype(dtype)
+    mu = 1.0 / jnp.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
+    return mu if images.flux_scale is None else mu * images.flux_scale.astype(dtype)
 
 
 def lensed_clumps(clumps: Clumps, images: ClumpImages) -> Clumps:
@@ -77,8 +90,9 @@ def lensed_clumps(clumps: Clumps, images: ClumpImages) -> Clumps:
     lmin = (det / q) ** 2 / lmax          # det Q / λ_max: no cancellation for thin images
     # Q = λ_min e eᵀ + λ_max e⊥ e⊥ᵀ with e = (cos φ, sin φ): Q00 − Q11 = (λ_min − λ_max) cos 2φ
     pa = 0.5 * safe_atan2(-2.0 * qb, qc - qa)
+    mu = image_magnifications(images, det.dtype)
     return Clumps(center_arcsec=center,
-                  flux=clumps.flux[j] * (1.0 / jnp.abs(det))[:, None],
+                  flux=clumps.flux[j] * mu[:, None],
                   re_arcsec=clumps.re_arcsec[j] / jnp.sqrt(lmin),
                   n=clumps.n[j], q=jnp.sqrt(lmin / lmax), pa_rad=pa)
 
@@ -261,6 +275,38 @@ def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_
         if np.any(keep[prev] & (np.hypot(*(theta[prev] - theta[k]).T) < merge_pixels * h)):
             keep[k] = False
     return pidx[keep], theta[keep], A[keep]
+
+
+def light_averaged_magnification(corner_b1, corner_b2, grid: Grid, theta, A, beta0, samples,
+                                 weights, iterations: int = 12):
+    """|μ| of each of K clump images averaged over its clump's light: [K].
+
+    theta [K, 2], A [K, 2, 2], beta0 [K, 2]: the image of each clump centre, the Jacobian
+    there and the centre (arcsec); samples [K, S, 2] β and weights [K, S] (summing to 1):
+    a quadrature of the clump's light. Each sample's image near θ is solved by Newton on
+    the corner grid's bilinear mapping (the one the ray tracer follows), starting from
+    the linear map's guess; NaN where a solve does not converge or leaves the grid (the
+    caller keeps the centre's μ there).
+    """
+    K, S = samples.shape[:2]
+    if K == 0:
+        return np.zeros(0)
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    inv = np.stack([np.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
+                    np.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / det[:, None, None]
+    t = theta[:, None, :] + np.einsum("kab,ksb->ksa", inv, samples - beta0[:, None, :])
+    for _ in range(iterations):
+        b1, b2, J, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
+        r = np.stack([samples[..., 0] - b1, samples[..., 1] - b2], -1)
+        d = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        d = np.where(np.abs(d) > 1e-300, d, 1e-300)
+        t = t + np.stack([J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1],
+                          -J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]], -1) / d[..., None]
+    b1, b2, J, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
+    miss = np.hypot(samples[..., 0] - b1, samples[..., 1] - b2)
+    mu = 1.0 / np.abs(J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0])
+    ok = (inside & (miss < 1e-9 * grid.pixel_arcsec)).all(axis=1)
+    return np.where(ok, np.sum(weights * mu, axis=1), np.nan)
 
 
 def linearisation_error(corner_b1, corner_b2, grid: Grid, theta, A, beta0, radius_arcsec,
