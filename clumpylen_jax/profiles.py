@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammainc, gammaln
 
+from . import incgamma
+
 # ---------------------------------------------------------------- incomplete gamma
 
 
@@ -158,7 +160,7 @@ def _edge_spans(ax, ay, bx, by):
     return jnp.where(degenerate, 0.0, dphi), degenerate
 
 
-def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights):
+def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights, q_upper):
     """∫ dφ Q(R(φ)) over the span of segment A→B seen from the origin (Gauss–Legendre in φ).
 
     Q = 1 − P(2n, b (R/R_e)^{1/n}), the fraction of light outside R along a ray;
@@ -180,12 +182,13 @@ def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights):
     # infinite or NaN for a ≤ 1: keep x = 0 out of them.
     positive = x > 0
     xs = jnp.where(positive, x, 1.0)
-    g = jnp.where(positive, jax.scipy.special.gammaincc(2 * n, xs), 1.0)
+    g = jnp.where(positive, q_upper(xs), 1.0)
     return dphi * jnp.sum(g * weights, axis=-1)
 
 
 def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa_rad,
-                            center1, center2, b=None, nodes=_FAN_NODES):
+                            center1, center2, b=None, nodes=_FAN_NODES, q_table=None,
+                            q_index=None):
     """Flux of one elliptical Sérsic inside axis-aligned pixels [x_lo, x_hi] × [y_lo, y_hi].
 
     Pixel bounds are arrays of any (common) shape, in arcsec; profile parameters
@@ -196,9 +199,13 @@ def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa
     incomplete gamma function. No sample sits on the cusp, whatever R_e and n.
     Pixels holding the centre sum P = light inside; the others use Q = 1 − P
     and the winding number, which keeps relative precision in the wings.
+    q_table: an `incgamma.QTable` of Q(2n, ·) (made here when None); q_index: this
+    profile's order in it when it holds several (inside a vmap over profiles).
     """
     if b is None:
         b = sersic_b(n)
+    if q_table is None:
+        q_table = incgamma.q_table(2 * jnp.asarray(n, jnp.result_type(re_arcsec, float)))
     gl_x, gl_w = np.polynomial.legendre.leggauss(nodes)
     dtype = jnp.result_type(x_lo, re_arcsec)
     t = jnp.asarray((gl_x + 1) / 2, dtype)
@@ -224,8 +231,8 @@ def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa
     # a tiny fraction (≲ 1e-10) of the light, i.e. none that an image can show.
     span = jnp.sum(dphi, axis=-1)
     touching = jnp.abs(span) > 1e-4
-    upper = jnp.sum(_edge_light(ax, ay, bx, by, dphi, degenerate, re_arcsec, n, b, t, w),
-                    axis=-1)
+    upper = jnp.sum(_edge_light(ax, ay, bx, by, dphi, degenerate, re_arcsec, n, b, t, w,
+                                lambda x: incgamma.q_upper(q_table, x, q_index)), axis=-1)
     frac = jnp.where(touching, span - upper, -upper) / (2 * jnp.pi)
     # rounding can leave −1e-24 where the true light is +1e-24: light is never negative
     return flux * jnp.maximum(frac, 0.0)

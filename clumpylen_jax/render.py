@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import profiles
+from . import incgamma, profiles
 from .pixels import Grid, gauss_legendre_offsets
 from .source import Clumps, Disk, Sersic
 
@@ -260,13 +260,17 @@ def _exact_fluxes(clumps: Clumps, b, which, x_lo, y_lo, pixel):
     gammas per pixel, ≤ 4 GB), not every pixel's (29 GB for 1e5 clumps). Below, no
     checkpoint: its barriers cost the forward pass ~20 % (paper scene).
     """
-    def one(xl, yl, p, c1, c2, re, n, q, pa, b):
+    # one table of Q(2n, ·) per clump, read by all its pixels' fan nodes
+    table = incgamma.q_table(2 * clumps.n)
+
+    def one(xl, yl, p, c1, c2, re, n, q, pa, b, w):
         return profiles.sersic_pixel_flux_exact(xl, xl + p, yl, yl + p, flux=1.0, re_arcsec=re,
-                                                n=n, q=q, pa_rad=pa, center1=c1, center2=c2, b=b)
+                                                n=n, q=q, pa_rad=pa, center1=c1, center2=c2, b=b,
+                                                q_table=table, q_index=w)
 
     args = (x_lo, y_lo, pixel, clumps.center_arcsec[which, 0], clumps.center_arcsec[which, 1],
             clumps.re_arcsec[which], clumps.n[which], clumps.q[which], clumps.pa_rad[which],
-            b[which])
+            b[which], which)
     total = x_lo.shape[0]
     chunks = -(-total // _EXACT_CHUNK)
     if chunks <= 1:
