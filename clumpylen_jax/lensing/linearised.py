@@ -298,6 +298,8 @@ def light_averaged_magnification(corner_b1, corner_b2, grid: Grid, theta, A, bet
     for _ in range(iterations):
         b1, b2, J, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
         r = np.stack([samples[..., 0] - b1, samples[..., 1] - b2], -1)
+        if np.max(np.abs(r)) < 1e-12 * grid.pixel_arcsec:
+            break
         d = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         d = np.where(np.abs(d) > 1e-300, d, 1e-300)
         t = t + np.stack([J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1],
