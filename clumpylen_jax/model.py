@@ -29,7 +29,7 @@ from . import convolve, noise, render, tiles
 from .errors import ConfigError, require
 from .lensing.linearised import (ClumpImages, FootprintIndex, bilinear_patch,
                                  image_magnifications, lensed_clumps,
-                                 light_averaged_magnification, linearisation_error,
+                                 light_averaged_flux_scale, linearisation_error,
                                  pixel_footprints, pixels_near, point_images)
 from .pixels import Grid, bin_blocks, gauss_legendre_offsets, rebin_sparse, sparse_rebin_operators
 from .source import Source
@@ -820,10 +820,8 @@ def _linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, footpr
     ci, theta, A = ci[keep], theta[keep], A[keep]
     samples, weights = _light_samples(cc, re, n, np.asarray(clumps.q, float),
                                       np.asarray(clumps.pa_rad, float), r_stamp)
-    mu_avg = light_averaged_magnification(corner_b1, corner_b2, hr, theta, A, cc[ci],
-                                          samples[ci], weights[ci])
-    mu_center = 1.0 / np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
-    scale = np.where(np.isfinite(mu_avg), mu_avg / mu_center, 1.0)
+    scale = light_averaged_flux_scale(corner_b1, corner_b2, hr, theta, A, cc[ci],
+                                      samples[ci], weights[ci])
     images = ClumpImages(clump_index=jnp.asarray(ci), theta0=jnp.asarray(theta, dtype),
                          beta0=jnp.asarray(cc[ci], dtype), jacobian=jnp.asarray(A, dtype),
                          flux_scale=jnp.asarray(scale, dtype))

@@ -277,38 +277,42 @@ def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_
     return pidx[keep], theta[keep], A[keep]
 
 
-def light_averaged_magnification(corner_b1, corner_b2, grid: Grid, theta, A, beta0, samples,
-                                 weights, iterations: int = 12):
-    """|μ| of each of K clump images averaged over its clump's light: [K].
+def _det_inverse(A):
+    """(det [K], inverse [K, 2, 2]) of 2 × 2 matrices A [K, 2, 2] (numpy)."""
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    inv = np.stack([np.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
+                    np.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / det[:, None, None]
+    return det, inv
+
+
+def light_averaged_flux_scale(corner_b1, corner_b2, grid: Grid, theta, A, beta0, samples,
+                              weights, iterations: int = 12):
+    """|μ| of each of K clump images averaged over its clump's light, over |μ| at the
+    image of its centre (`ClumpImages.flux_scale`): [K].
 
     theta [K, 2], A [K, 2, 2], beta0 [K, 2]: the image of each clump centre, the Jacobian
     there and the centre (arcsec); samples [K, S, 2] β and weights [K, S] (summing to 1):
     a quadrature of the clump's light. Each sample's image near θ is solved by Newton on
     the corner grid's bilinear mapping (the one the ray tracer follows), starting from
-    the linear map's guess; NaN where a solve does not converge or leaves the grid (the
-    caller keeps the centre's μ there).
+    the linear map's guess; 1 (the centre's μ) where a solve does not converge or leaves
+    the grid.
     """
-    K, S = samples.shape[:2]
-    if K == 0:
+    if theta.shape[0] == 0:
         return np.zeros(0)
-    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-    inv = np.stack([np.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
-                    np.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / det[:, None, None]
+    det, inv = _det_inverse(A)
     t = theta[:, None, :] + np.einsum("kab,ksb->ksa", inv, samples - beta0[:, None, :])
-    for _ in range(iterations):
+    for step in range(iterations + 1):
         b1, b2, J, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
         r = np.stack([samples[..., 0] - b1, samples[..., 1] - b2], -1)
-        if np.max(np.abs(r)) < 1e-12 * grid.pixel_arcsec:
+        if step == iterations or np.max(np.abs(r)) < 1e-12 * grid.pixel_arcsec:
             break
         d = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
         d = np.where(np.abs(d) > 1e-300, d, 1e-300)
         t = t + np.stack([J[..., 1, 1] * r[..., 0] - J[..., 0, 1] * r[..., 1],
                           -J[..., 1, 0] * r[..., 0] + J[..., 0, 0] * r[..., 1]], -1) / d[..., None]
-    b1, b2, J, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
-    miss = np.hypot(samples[..., 0] - b1, samples[..., 1] - b2)
     mu = 1.0 / np.abs(J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0])
-    ok = (inside & (miss < 1e-9 * grid.pixel_arcsec)).all(axis=1)
-    return np.where(ok, np.sum(weights * mu, axis=1), np.nan)
+    ok = (inside & (np.hypot(r[..., 0], r[..., 1]) < 1e-9 * grid.pixel_arcsec)).all(axis=1)
+    return np.where(ok, np.sum(weights * mu, axis=1) * np.abs(det), 1.0)
 
 
 def linearisation_error(corner_b1, corner_b2, grid: Grid, theta, A, beta0, radius_arcsec,
@@ -326,9 +330,7 @@ def linearisation_error(corner_b1, corner_b2, grid: Grid, theta, A, beta0, radiu
         return np.zeros(0)
     ang = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
     circle = np.stack([np.cos(ang), np.sin(ang)], -1)                 # [S, 2]
-    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-    Ainv = np.stack([np.stack([A[:, 1, 1], -A[:, 0, 1]], -1),
-                     np.stack([-A[:, 1, 0], A[:, 0, 0]], -1)], -2) / det[:, None, None]
+    _, Ainv = _det_inverse(A)
     dbeta = radius_arcsec[:, None, None] * circle[None]               # [K, S, 2]
     t = theta[:, None, :] + np.einsum("kab,ksb->ksa", Ainv, dbeta)
     b1, b2, _, inside = map_points(corner_b1, corner_b2, grid, t[..., 0], t[..., 1])
