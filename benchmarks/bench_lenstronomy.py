@@ -211,7 +211,7 @@ def time_lenstronomy(c, supersampling, mask, repeats=2):
         t = time.perf_counter()
         lm.render(kw)
         times.append(time.perf_counter() - t)
-    return np.asarray(img), cold, float(np.median(times))
+    return np.asarray(img), cold, float(np.median(times)) if times else None
 
 
 def residual(a, b):

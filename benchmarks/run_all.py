@@ -14,15 +14,19 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+# each job: a script and the argument lists of its processes (lenstronomy's large counts
+# in their own processes: XLA's CPU JIT can run out of code memory after many models)
 JOBS = {
-    "accuracy": ["bench_accuracy.py"],
-    "lenstronomy": ["bench_lenstronomy.py"],
-    "scene": ["bench_scene.py"],
-    "scaling": ["bench_scaling.py"],
-    "paper_lens": ["bench_paper_lens.py"],
+    "accuracy": ("bench_accuracy.py", [[]]),
+    "lenstronomy": ("bench_lenstronomy.py", [["--counts", "10,30,100"],
+                                             ["--counts", "300", "--append"],
+                                             ["--counts", "1000", "--append"]]),
+    "scene": ("bench_scene.py", [[]]),
+    "scaling": ("bench_scaling.py", [[]]),
+    "paper_lens": ("bench_paper_lens.py", [[]]),
 }
-QUICK = {"accuracy": ["--quick"], "lenstronomy": ["--quick"], "scene": ["--settings", "as-is"],
-         "scaling": ["--quick"], "paper_lens": []}
+QUICK = {"accuracy": [["--quick"]], "lenstronomy": [["--quick"]],
+         "scene": [["--settings", "as-is"]], "scaling": [["--quick"]], "paper_lens": [[]]}
 
 
 def main(argv=None):
@@ -32,12 +36,14 @@ def main(argv=None):
     args = ap.parse_args(argv)
     status = 0
     for name in args.only.split(","):
-        cmd = [sys.executable, str(HERE / JOBS[name][0])] + (QUICK[name] if args.quick else [])
-        t = time.perf_counter()
-        print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
-        rc = subprocess.call(cmd)   # one process per benchmark: separate peak RSS and caches
-        print(f"== {name}: exit {rc} in {time.perf_counter() - t:.0f}s", flush=True)
-        status = status or rc
+        script, runs = JOBS[name]
+        for extra in QUICK[name] if args.quick else runs:
+            cmd = [sys.executable, str(HERE / script)] + extra
+            t = time.perf_counter()
+            print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
+            rc = subprocess.call(cmd)   # one process per run: separate peak RSS and caches
+            print(f"== {name}: exit {rc} in {time.perf_counter() - t:.0f}s", flush=True)
+            status = status or rc
     return status
 
 

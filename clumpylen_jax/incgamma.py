@@ -104,15 +104,25 @@ def _p_series(a, coef, x, lg):
     return jnp.exp(a * jnp.log(x) - x - lg - jnp.log(a)) * total
 
 
-def q_upper(table: QTable, x, index=None):
+def x_floor(dtype):
+    """x below which Q(a, x) is taken as exactly 1 (P as 0): tiny / eps (1e-31 in float32,
+    1e-292 in float64), so that x, 1/x and the products of the gradient stay clear of the
+    subnormals that jitted CPU code flushes to 0 in some operations and not others."""
+    info = jnp.finfo(dtype)
+    return float(info.tiny) / float(info.eps)
+
+
+def q_upper(table: QTable, x, index=None, lower=None):
     """Q(a, x) for x ≥ 0: of a one-order table, or of order `index` (a scalar, e.g. inside
     a vmap) of a table of orders [N] (only the nodes needed are gathered).
-    Q(a, 0) = 1 with finite derivatives.
+    Q(a, x ≤ `x_floor`) = 1 with finite derivatives. Where `lower` (a bool broadcast to
+    x) is True, P = 1 − Q instead, with its own relative precision where P ≪ 1 (the
+    series directly, −expm1(ln Q) on the table), not 1 − Q's absolute one.
     """
     if index is not None:
         values = table.values
         table = QTable(*(f[index] for f in table[:-1]), values)
-    positive = x > 0
+    positive = x > x_floor(jnp.result_type(x, float))
     xs = jnp.where(positive, x, 1.0)
     lx = jnp.log(xs)
     # table: quintic Hermite in u on the interval holding ln x
@@ -139,7 +149,11 @@ def q_upper(table: QTable, x, index=None):
            + h01 * v1[..., 0] + h11 * h * v1[..., 1] + h21 * h * h * v1[..., 2])
     low = xs <= table.x_lo
     high = xs >= table.x_hi
-    series = 1.0 - _p_series(table.a, table.coef, jnp.where(low, xs, table.x_lo), table.lg)
+    p_low = _p_series(table.a, table.coef, jnp.where(low, xs, table.x_lo), table.lg)
     asym = _q_asymptotic(table.a, jnp.where(high, xs, table.x_hi), table.lg)
-    q = jnp.where(low, series, jnp.where(high, asym, jnp.exp(tab)))
-    return jnp.where(positive, q, 1.0)
+    q = jnp.where(positive, jnp.where(low, 1.0 - p_low, jnp.where(high, asym, jnp.exp(tab))), 1.0)
+    if lower is None:
+        return q
+    p = jnp.where(positive, jnp.where(low, p_low, jnp.where(high, 1.0 - asym, -jnp.expm1(tab))),
+                  0.0)
+    return jnp.where(lower, p, q)

@@ -44,7 +44,11 @@ class Accuracy:
 
     lens_subsampling: Gauss–Legendre order per lens-plane pixel (rays per pixel = its square).
     source_order: Gauss–Legendre order per pixel when a profile is integrated on a grid.
-    exact_core: side (pixels) of the block around each Sérsic centre integrated exactly.
+    exact_core: side (pixels) of the block around each Sérsic centre integrated exactly;
+        an unlensed profile with light beyond it where it is thin (minor axis below a
+        pixel: q·r < 1 pixel, `render.strip_needed`) has instead the pixels along its
+        major axis integrated exactly (3 per row or column of its stamp or grid, +
+        exact_core²), as have linearised clump images with light beyond it; 0: none.
     psf_oversampling: odd factor of the grid, finer than the detector, on which the PSF acts.
     source_mode: "hybrid" (each clump image far enough from a caustic is the clump seen
         through the local linear lens map, integrated over detector pixels with no rays;
@@ -153,7 +157,8 @@ class _BandLayout:
     sky_counts_per_s: float
     psf_shape: Optional[tuple]
     psf_effective: bool
-    stamp_sides: tuple     # clump stamp sides on the sub-grid (unlensed models)
+    stamp_sides: tuple     # clump stamp (side, strip) groups on the sub-grid (unlensed models)
+    host_strips: tuple     # (bulge, disk): exact strip, not core, on the sub-grid (unlensed)
 
 
 # ------------------------------------------------------------------ static helpers
@@ -193,12 +198,26 @@ def source_extent(source: Source, flux_fraction: float, stamp_flux_fraction: flo
     return np.asarray(center), radius
 
 
-def _clump_groups_for(source: Source, pixel_arcsec: float, fraction: float):
-    """Stamp groups [(side, indices)] of the source's clumps on a grid of this pixel."""
+def _unlensed_clump_groups(source: Source, pixel_arcsec: float, accuracy):
+    """Stamp groups [((side, strip), indices)] of an unlensed source's clumps on a grid of
+    this pixel: the exact strip for thin clumps with light beyond the exact core."""
     cl = source.clumps
     if cl is None or cl.count == 0:
         return []
-    return render.stamp_groups(cl.re_arcsec, cl.n, pixel_arcsec, flux_fraction=fraction)
+    return render.strip_groups(cl.re_arcsec, cl.n, pixel_arcsec, accuracy.exact_core, q=cl.q,
+                               flux_fraction=accuracy.stamp_flux_fraction)
+
+
+def _host_strips(source: Source, pixel_arcsec: float, core: int):
+    """(bulge, disk): whether each host component needs the exact strip on a grid of this
+    pixel (thin, with light beyond the exact core; the disk only when a plain Sérsic)."""
+    def need(s, q):
+        return bool(render.strip_needed(np.asarray(s.re_arcsec), np.asarray(s.n), pixel_arcsec,
+                                        core, q=np.asarray(q)))
+    disk = source.disk
+    return (source.bulge is not None and need(source.bulge, source.bulge.q),
+            disk is not None and disk.arms is None and disk.texture is None
+            and need(disk.sersic, disk.q_projected))
 
 
 def _trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
@@ -522,14 +541,15 @@ class SceneModel(eqx.Module):
         key = ("host", g)
         if key not in cache:
             parts = []
+            strip_bulge, strip_disk = lay.host_strips
             if source.bulge is not None:
                 parts.append((source.bulge.flux,
                               render.sersic_image(source.bulge, g, order=acc.source_order,
-                                                  core=acc.exact_core)))
+                                                  core=acc.exact_core, strip=strip_bulge)))
             if source.disk is not None:
                 parts.append((source.disk.sersic.flux,
                               render.disk_image(source.disk, g, order=acc.source_order,
-                                                core=acc.exact_core)))
+                                                core=acc.exact_core, strip=strip_disk)))
             cache[key] = parts
         img = jnp.zeros(g.shape, jnp.result_type(*[p[1] for p in cache[key]])
                         if cache[key] else source.clumps.flux.dtype)
@@ -604,8 +624,9 @@ class SceneModel(eqx.Module):
                 # every band and every sub-grid at once: one exact-pixel kernel, and bands
                 # on the same grid share the stamps
                 first = self._first_band_per_subgrid()
-                targets = [(g, tuple(zip(self.layouts[k].stamp_sides,
-                                         self.stamp_index_unlensed[k])))
+                targets = [(g, tuple((side, idx, strip) for (side, strip), idx
+                                     in zip(self.layouts[k].stamp_sides,
+                                            self.stamp_index_unlensed[k])))
                            for g, k in first.items()]
                 images = render.clumps_images(cl, targets, cl.flux,
                                               order=self.accuracy.source_order,
@@ -695,13 +716,14 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
             s = 1
         sub = band.pixel_arcsec / s
         kernel = _psf_kernel_for(band, sub) if band.psf is not None else None
-        groups = (_clump_groups_for(source, sub, accuracy.stamp_flux_fraction)
-                  if lens is None else [])
+        groups = _unlensed_clump_groups(source, sub, accuracy) if lens is None else []
         unlensed_index.append(tuple(jnp.asarray(i) for _, i in groups))
         layouts.append(_BandLayout(band.name, grid, s, float(band.exptime_s),
                                    float(band.sky_counts_per_s),
                                    None if kernel is None else kernel.shape,
-                                   bool(band.psf_effective), tuple(side for side, _ in groups)))
+                                   bool(band.psf_effective), tuple(key for key, _ in groups),
+                                   _host_strips(source, sub, accuracy.exact_core)
+                                   if lens is None else (False, False)))
         psf_fts.append(None if kernel is None else
                        convolve.kernel_rfft(kernel, grid.subdivided(s).shape, dtype))
 
@@ -867,13 +889,9 @@ def _linearised_layout(source: Source, images: ClumpImages, layouts, hr: Grid, a
     n = np.asarray(lensed.n)
 
     def groups(pixel):
-        # (side, strip) groups: the exact strip only for images with light beyond the core
-        need = render.strip_needed(re, n, pixel, accuracy.exact_core)
-        g = [((side, bool(flag)), idx[need[idx] == flag])
-             for side, idx in render.stamp_groups(re, n, pixel,
-                                                  flux_fraction=accuracy.stamp_flux_fraction)
-             for flag in (True, False)]
-        g = [(key, idx) for key, idx in g if idx.size]
+        # (side, strip) groups: the exact strip for images with light beyond the core
+        g = render.strip_groups(re, n, pixel, accuracy.exact_core,
+                                flux_fraction=accuracy.stamp_flux_fraction)
         return tuple(k for k, _ in g), tuple(jnp.asarray(i) for _, i in g)
 
     per_pixel = {}

@@ -149,6 +149,7 @@ def sersic_radius_enclosing(fraction, re_arcsec, n, b=None):
 # ---------------------------------------------------------------- exact pixel integrals
 
 _FAN_NODES = 16
+_FAR_RE = 1e7        # fan rays are cut at this many R_e
 
 
 def _edge_spans(ax, ay, bx, by):
@@ -160,11 +161,12 @@ def _edge_spans(ax, ay, bx, by):
     return jnp.where(degenerate, 0.0, dphi), degenerate
 
 
-def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights, q_upper):
-    """∫ dφ Q(R(φ)) over the span of segment A→B seen from the origin (Gauss–Legendre in φ).
+def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights, q_or_p, lower):
+    """∫ dφ Q(R(φ)) over the span of segment A→B seen from the origin (Gauss–Legendre in φ),
+    or ∫ dφ P(R(φ)) where `lower` (a bool broadcast to the edges [..., 4]).
 
     Q = 1 − P(2n, b (R/R_e)^{1/n}), the fraction of light outside R along a ray;
-    R(φ) is where the ray at angle φ meets the edge's line.
+    R(φ) is where the ray at angle φ meets the edge's line. q_or_p(x, lower): Q or P.
     """
     phi_a = safe_atan2(ay, ax)
     ex, ey = bx - ax, by - ay
@@ -174,15 +176,22 @@ def _edge_light(ax, ay, bx, by, dphi, degenerate, re, n, b, nodes, weights, q_up
     d = jnp.abs(ax * nx_ + ay * ny_)  # the line's distance from the origin
     phi = phi_a[..., None] + dphi[..., None] * nodes
     cosang = jnp.abs(jnp.cos(phi) * nx_[..., None] + jnp.sin(phi) * ny_[..., None])
-    # degenerate edges (through the centre) hold no light; keep their rays out of the division
-    cosang = jnp.where(degenerate[..., None], 1.0, jnp.maximum(cosang, jnp.finfo(cosang.dtype).tiny))
+    # Rays nearly parallel to the edge meet it far away: cap R at _FAR_RE·R_e (beyond it
+    # Q < 1e-24 for every n ≤ 10), so that b (R/R_e)^{1/n} stays finite in float32 (n = 0.2:
+    # a power of 5) and no inf meets a zero cotangent (NaN gradients). Degenerate edges
+    # (through the centre) hold no light; their rays stay out of the division.
+    floor = jnp.maximum(d / (_FAR_RE * re), jnp.finfo(cosang.dtype).tiny)
+    cosang = jnp.where(degenerate[..., None], 1.0, jnp.maximum(cosang, floor[..., None]))
     radius = jnp.where(degenerate[..., None], 0.0, d[..., None] / cosang)
     x = b * safe_pow(radius / re, 1.0 / n)
     # Q(a, 0) = 1, but the derivatives of the incomplete gamma function at x = 0 are
-    # infinite or NaN for a ≤ 1: keep x = 0 out of them.
-    positive = x > 0
+    # infinite or NaN for a ≤ 1: keep x = 0 out of them, and x near the subnormals too
+    # (jitted CPU code flushes those to 0 in some ops and not others: NaN gradients; met
+    # in float32 at the centre of a R_e = 1e3 pixel n = 0.2 profile). P < 1e-12 there.
+    positive = x > incgamma.x_floor(x.dtype)
     xs = jnp.where(positive, x, 1.0)
-    g = jnp.where(positive, q_upper(xs), 1.0)
+    lower = lower[..., None]
+    g = jnp.where(positive, q_or_p(xs, lower), jnp.where(lower, 0.0, 1.0))
     return dphi * jnp.sum(g * weights, axis=-1)
 
 
@@ -223,17 +232,20 @@ def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa
     ax, ay = u, v
     bx, by = jnp.roll(u, -1, axis=-1), jnp.roll(v, -1, axis=-1)
     dphi, degenerate = _edge_spans(ax, ay, bx, by)
-    # The angle the pixel subtends at the centre: 2π inside, π on an edge, the
-    # (sheared) corner angle on a corner, and exactly 0 outside, where the signed
-    # spans cancel and Σ Δφ·P = −Σ Δφ·Q keeps the wings' relative precision.
-    # One incomplete gamma per node: Q. Where the pixel subtends an angle Φ, Σ Δφ·P =
-    # Φ − Σ Δφ·Q; the cancellation there costs relative precision only in pixels holding
-    # a tiny fraction (≲ 1e-10) of the light, i.e. none that an image can show.
+    # The angle Φ the pixel subtends at the centre: 2π inside, π on an edge, the (sheared)
+    # corner angle on a corner, and exactly 0 outside (the signed spans cancel). Its light
+    # is Σ Δφ·P = Φ − Σ Δφ·Q. Each pixel takes the form that keeps relative precision: P
+    # where P is small, i.e. pixels touching the centre or with their middle inside the
+    # half-light ellipse (P = ½ on it); −Σ Δφ·Q (Φ = 0) in the wings. (Φ − Σ Δφ·Q near the
+    # centre of a large profile cancels: in float32, R_e = 1e3 pixels with the centre on a
+    # corner lost the value and gave NaN gradients.) One incomplete gamma per node either way.
     span = jnp.sum(dphi, axis=-1)
     touching = jnp.abs(span) > 1e-4
-    upper = jnp.sum(_edge_light(ax, ay, bx, by, dphi, degenerate, re_arcsec, n, b, t, w,
-                                lambda x: incgamma.q_upper(q_table, x, q_index)), axis=-1)
-    frac = jnp.where(touching, span - upper, -upper) / (2 * jnp.pi)
+    inner = touching | (jnp.mean(u, -1) ** 2 + jnp.mean(v, -1) ** 2 < re_arcsec**2)
+    light = jnp.sum(_edge_light(ax, ay, bx, by, dphi, degenerate, re_arcsec, n, b, t, w,
+                                lambda x, lower: incgamma.q_upper(q_table, x, q_index, lower),
+                                jnp.broadcast_to(inner[..., None], dphi.shape)), axis=-1)
+    frac = jnp.where(inner, light, -light) / (2 * jnp.pi)
     # rounding can leave −1e-24 where the true light is +1e-24: light is never negative
     return flux * jnp.maximum(frac, 0.0)
 

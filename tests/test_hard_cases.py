@@ -29,7 +29,7 @@ from hypothesis import given, note, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import clumpylen_jax  # noqa: E402,F401
-from clumpylen_jax import profiles  # noqa: E402
+from clumpylen_jax import profiles, render  # noqa: E402
 from clumpylen_jax.errors import ConfigError  # noqa: E402
 from clumpylen_jax.lensing.analytic import SIS  # noqa: E402
 from clumpylen_jax.lensing.grid import DeflectionGrid  # noqa: E402
@@ -100,12 +100,27 @@ def sersic_source(flux, re_arcsec, n, q, pa, center, dtype):
                                jnp.array(q), jnp.array(pa), jnp.array(center))).astype(dtype)
 
 
-_TEMPLATE = sersic_source(1.0, 0.1, 1.0, 0.8, 0.1, (0.0, 0.0), jnp.float64)
 _SERSIC_ACC = Accuracy(source_order=3, exact_core=3)
+# two models, as the scene layer would build them: a resolved template (exact core) and a
+# thin one with light beyond the core (exact strip along the major axis)
+_TEMPLATES = {False: sersic_source(1.0, 0.3, 1.0, 1.0, 0.1, (0.0, 0.0), jnp.float64),
+              True: sersic_source(1.0, 0.1, 1.0, 0.05, 0.1, (0.0, 0.0), jnp.float64)}
 SERSIC_MODELS = {
-    d: build_model(_TEMPLATE.astype(d), [Band("zero-sky", PIX, 1000.0, 0.0)],
-                   field_arcsec=SERSIC_FIELD, accuracy=_SERSIC_ACC, dtype=d) for d in DTYPES}
-SERSIC_VG = {d: value_and_grad_fn(m) for d, m in SERSIC_MODELS.items()}
+    (d, strip): build_model(t.astype(d), [Band("zero-sky", PIX, 1000.0, 0.0)],
+                            field_arcsec=SERSIC_FIELD, accuracy=_SERSIC_ACC, dtype=d)
+    for d in DTYPES for strip, t in _TEMPLATES.items()}
+SERSIC_VG = {key: value_and_grad_fn(m) for key, m in SERSIC_MODELS.items()}
+
+
+def test_sersic_templates_take_the_core_and_the_strip_paths():
+    for (_, strip), m in SERSIC_MODELS.items():
+        assert m.layouts[0].host_strips == (strip, False)
+
+
+def sersic_vg(n, re_pix, q, dtype):
+    """The model the scene layer would build for this profile (core or strip)."""
+    strip = bool(render.strip_needed(re_pix * PIX, n, PIX, _SERSIC_ACC.exact_core, q=q))
+    return SERSIC_VG[(dtype, strip)]
 
 
 @jax.jit
@@ -124,17 +139,13 @@ def test_sersic_edges_finite_conserving(n, re_pix, q, pa, center, log_flux, dtyp
         log_flux = float(np.clip(log_flux, -15, 15))
     flux = 10.0 ** log_flux
     src = sersic_source(flux, re_pix * PIX, n, q, pa, center, dtype)
-    (_, imgs), grads = SERSIC_VG[dtype](src)
+    (_, imgs), grads = sersic_vg(n, re_pix, q, dtype)(src)
     assert_finite_and_dtype(imgs, grads, dtype, f"sersic n={n} re={re_pix}px q={q}")
     img = np.asarray(imgs[0], np.float64)
     assert img.min() >= 0.0, "negative light"
     # flux conservation: the pixel sum is the light inside the field (exact fan integral),
-    # where it must hold: the profile is resolved by the pixel sampling (minor axis R_e ≥ 1
-    # pixel) or its light lies inside the exactly integrated 3 × 3 core. Thin, unresolved
-    # profiles reaching beyond the core are a known limitation (see the xfail test below).
-    r_out = float(profiles.sersic_radius_enclosing(0.9999, re_pix, n))     # pixels
-    if not (q * re_pix >= 1.0 or r_out <= 1.0):
-        return
+    # for every profile: resolved ones by the sampling, the light within the 3 × 3 core
+    # exactly, thin ones reaching beyond it by the exact strip along the major axis
     inside = float(field_flux_exact(re_pix * PIX, n, q, pa, *center))
     total = img.sum() / flux
     note(f"pixel sum / flux = {total!r}, exact light in the field / flux = {inside!r}")
@@ -142,12 +153,99 @@ def test_sersic_edges_finite_conserving(n, re_pix, q, pa, center, log_flux, dtyp
     assert abs(total - inside) <= tol * max(inside, 1e-300) + 1e-12, (total, inside)
 
 
-@pytest.mark.xfail(strict=True, reason="thin (q·R_e < 1 pixel) profile reaching beyond the "
-                   "exact core: Gauss–Legendre samples on the line invent 15 % of the flux")
-def test_thin_unresolved_profile_beyond_core_conserves_flux():
-    src = sersic_source(1.0, 1.0 * PIX, 0.2, 0.05, 0.0, (0.2, -0.3), jnp.float64)
-    img = np.asarray(SERSIC_VG[jnp.float64](src)[0][1][0])
-    assert img.sum() == pytest.approx(1.0, rel=1e-2)   # measured: 1.155
+def test_float32_cusp_at_a_pixel_corner_conserves_flux():
+    """Found by the thorough profile: an n = 4 cusp (R_e 1e-3 pixel, q 0.05) whose centre is
+    a pixel corner lies ~5e-8" off it in float32, and pixel edges computed as low + pixel
+    left float32 gaps and overlaps there: the four pixels summed to 1.0054. Shared edges
+    (`render._pixel_edges`) make them tile the plane: host core, strip and clump stamps."""
+    src = sersic_source(1.0, 1e-3 * PIX, 4.0, 0.05, 0.0, (0.05, -0.05), jnp.float32)
+    for strip in (False, True):
+        img = np.asarray(SERSIC_VG[(jnp.float32, strip)](src)[0][1][0], np.float64)
+        assert img.sum() == pytest.approx(1.0, abs=1e-5), strip
+    cl = Clumps(jnp.asarray([[0.05, -0.05], [-0.25, 0.35]]), jnp.ones((2, 1)),
+                jnp.full(2, 1e-3 * PIX), jnp.full(2, 4.0), jnp.full(2, 0.05), jnp.zeros(2))
+    clumps_src = Source(clumps=cl).astype(jnp.float32)
+    m = build_model(clumps_src, [Band("zero-sky", PIX, 1000.0, 0.0)], field_arcsec=SERSIC_FIELD,
+                    accuracy=_SERSIC_ACC, dtype=jnp.float32)
+    assert float(np.sum(np.asarray(m.band_images(clumps_src)[0], np.float64))) == \
+        pytest.approx(2.0, abs=2e-5)
+
+
+@pytest.mark.parametrize("strip", [False, True])
+def test_float32_huge_profile_centred_on_a_corner_matches_float64(strip):
+    """Found by the thorough profile: n = 0.2, R_e = 1e3 pixels, q = 0.05, centre on a pixel
+    corner gave NaN gradients in float32. Two roots: the pixels near the centre took their
+    light as Φ − Σ Δφ·Q with Q ≈ 1 (cancellation: the corner pixels' ∂/∂centre were 1e3×
+    too large and of random sign), now Σ Δφ·P; and fan nodes with x near the subnormals,
+    which jitted code flushes to 0 in some operations only, now kept out (`x_floor`)."""
+    grads = {}
+    for dtype in DTYPES:
+        src = sersic_source(1.0, 1e3 * PIX, 0.2, 0.05, 0.0, (0.05, -0.05), dtype)
+        (_, imgs), g = SERSIC_VG[(dtype, strip)](src)
+        assert_finite_and_dtype(imgs, g, dtype, "huge profile, centre on a corner")
+        grads[dtype] = g.bulge
+    # the centre's derivative sums ±1.7e-5 per pixel over 225 pixels (a flat profile): float32
+    # leaves ~5e-6 of it; the corner pixels' old 1.6e-2 each would not pass
+    for name, atol in (("re_arcsec", 1e-6), ("n", 1e-6), ("q", 1e-6), ("center_arcsec", 2e-5)):
+        np.testing.assert_allclose(np.asarray(getattr(grads[jnp.float32], name), np.float64),
+                                   np.asarray(getattr(grads[jnp.float64], name)),
+                                   rtol=2e-2, atol=atol, err_msg=name)
+
+
+THIN_CASES = [(0.2, 1.0, 0.05, 0.0, (0.2, -0.3)),     # once 15 % too bright (samples on the line)
+              (0.2, 1.0, 0.05, 0.7, (0.2, -0.3)),
+              (1.0, 3.0, 0.05, 2.0, (0.05, -0.05)),
+              (4.0, 2.0, 0.05, 0.4, (0.0, 0.0)),
+              (0.5, 0.3, 0.1, 1.1, (0.04, 0.02))]
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("n, re_pix, q, pa, center", THIN_CASES)
+def test_thin_unresolved_profile_beyond_core_matches_exact_pixels(n, re_pix, q, pa, center,
+                                                                  dtype):
+    """A thin profile (q·R_e ≤ 0.15 pixel) reaching beyond the exact core, pixel by pixel
+    against exact integrals over every pixel (independent of the strip's choice of pixels)."""
+    assert sersic_vg(n, re_pix, q, dtype) is SERSIC_VG[(dtype, True)]
+    src = sersic_source(1.0, re_pix * PIX, n, q, pa, center, dtype)
+    img = np.asarray(sersic_vg(n, re_pix, q, dtype)(src)[0][1][0], np.float64)
+    ref = np.asarray(exact_pixels(re_pix * PIX, n, q, pa, *center))
+    tol = 2e-3 if dtype == jnp.float64 else 5e-3
+    assert img.sum() == pytest.approx(ref.sum(), rel=tol)
+    assert np.max(np.abs(img - ref)) <= tol * ref.max()
+
+
+def test_thin_unresolved_clumps_match_exact_pixels(dtype=jnp.float32):
+    """Unlensed thin clumps (those of THIN_CASES and a round one) take the exact strip, the
+    round one the core; the image matches exact integrals pixel by pixel (float32: the
+    strip's code is dtype-blind, float32 the harder case)."""
+    cases = THIN_CASES + [(1.0, 3.0, 1.0, 0.0, (-0.2, 0.3))]
+    centers = np.array([c for *_, c in cases])
+    flux = np.arange(1.0, len(cases) + 1.0)
+    cl = Clumps(jnp.asarray(centers), jnp.asarray(flux)[:, None],
+                *(jnp.asarray([case[k] for case in cases]) for k in (1, 0, 2, 3)))
+    cl = eqx.tree_at(lambda c: c.re_arcsec, cl, cl.re_arcsec * PIX)
+    src = Source(clumps=cl).astype(dtype)
+    m = build_model(src, [Band("zero-sky", PIX, 1000.0, 0.0)], field_arcsec=SERSIC_FIELD,
+                    accuracy=_SERSIC_ACC, dtype=dtype)
+    assert {strip for _, strip in m.layouts[0].stamp_sides} == {False, True}
+    (_, imgs), grads = value_and_grad_fn(m)(src)
+    assert_finite_and_dtype(imgs, grads, dtype, "thin clumps")
+    ref = sum(f * np.asarray(exact_pixels(re_pix * PIX, n, q, pa, *c))
+              for f, (n, re_pix, q, pa, c) in zip(flux, cases))
+    img = np.asarray(imgs[0], np.float64)
+    tol = 2e-3 if dtype == jnp.float64 else 5e-3
+    assert img.sum() == pytest.approx(ref.sum(), rel=tol)
+    assert np.max(np.abs(img - ref)) <= tol * ref.max()
+
+
+@jax.jit
+def exact_pixels(re_arcsec, n, q, pa, c1, c2):
+    """Exact unit-flux integrals over every pixel of the 15 × 15 field."""
+    edges = jnp.linspace(-HALF, HALF, 16)
+    x_lo, y_lo = edges[None, :-1], edges[:-1, None]
+    return profiles.sersic_pixel_flux_exact(x_lo, x_lo + PIX, y_lo, y_lo + PIX, flux=1.0,
+                                            re_arcsec=re_arcsec, n=n, q=q, pa_rad=pa,
+                                            center1=c1, center2=c2, nodes=64)
 
 
 # ------------------------------------------------------------------ lensed clumps on an SIS
@@ -339,7 +437,9 @@ def test_many_clumps_cheap_and_conserving(dtype):
 
 # ------------------------------------------------------------------ zero sky and noise
 
-OBSERVE = {d: eqx.filter_jit(lambda s, k, m=m: m.observe(s, k)) for d, m in SERSIC_MODELS.items()}
+# the source below (q·R_e = 0.6 pixel) is a thin one
+OBSERVE = {d: eqx.filter_jit(lambda s, k, m=SERSIC_MODELS[(d, True)]: m.observe(s, k))
+           for d in DTYPES}
 
 
 @given(log_flux=st.floats(-30, 12), seed=st.integers(0, 2**31 - 1),

@@ -55,3 +55,78 @@ def test_band_file_contract(runs):
     for key in ("scene", "seed", "version", "band_total_counts", "timings_s", "stages"):
         assert key in summary
     assert summary["scene"]["scene"]["name"] == "single-sersic"
+
+
+THIN_DISK = """
+[scene]
+name = "thin-disk"
+seed = 3
+z_source = 1.5
+
+[source]
+center_arcsec = [0.0, 0.0]
+
+[source.disk]
+magnitudes = { F200W = 22.0 }
+re_arcsec = 0.05
+n = 0.5
+q = 1.0
+pa_rad = 0.0
+inclination_rad = 1.52
+
+[render]
+field_arcsec = { x = [-0.6, 0.6], y = [-0.6, 0.6] }
+
+[[bands]]
+instrument = "JWST/NIRCam"
+filter = "F200W"
+exptime_s = 1000.0
+sky_counts_per_s = 0.16
+psf = "none"
+
+[output]
+noise = false
+unlensed = false
+"""
+
+
+def _midpoint_sersic(theta1, theta2, pixel, *, re, n, q, pa, sub=64):
+    """Independent reference: unit-flux Sérsic (exact b(n)) averaged over sub × sub midpoints
+    of each pixel centred at (theta1, theta2) (arcsec), times the pixel area."""
+    from scipy.special import gamma, gammaincinv
+    b = gammaincinv(2 * n, 0.5)
+    norm = 2 * np.pi * q * re**2 * n * np.exp(b) * b ** (-2 * n) * gamma(2 * n)
+    o = (np.arange(sub) + 0.5) / sub - 0.5
+    out = np.zeros(theta1.shape)
+    for oy in o:
+        x = theta1[..., None] + o * pixel
+        y = (theta2 + oy * pixel)[..., None]
+        u = x * np.cos(pa) + y * np.sin(pa)
+        v = -x * np.sin(pa) + y * np.cos(pa)
+        r = np.hypot(u, v / q)
+        out += np.exp(-b * ((r / re) ** (1 / n) - 1)).sum(-1)
+    return out / sub**2 * pixel**2 / norm
+
+
+def test_thin_edge_on_disk_through_simulate_matches_an_independent_renderer(tmp_path):
+    """An edge-on disk (projected minor-axis R_e 0.08 pixel, along a pixel row), unlensed, no
+    PSF or noise, through `simulate`: pixel by pixel against midpoint sampling in numpy (a
+    reference for n ≤ 2 only: at n = 4 the cusp needs far more samples), placed by the FITS
+    WCS. Sampled pixels missed 4.9 % of this disk's light (8.9 % of the peak in a pixel)
+    before thin profiles had their major-axis pixels integrated exactly."""
+    path = tmp_path / "thin.toml"
+    path.write_text(THIN_DISK)
+    pipeline.simulate(path, tmp_path / "out", progress=False)
+    with fits.open(tmp_path / "out" / "bands" / "F200W.fits") as f:
+        h = f[0].header
+        img = f["NOISELESS"].data.astype(float) - h["SKYLEVEL"]
+        wcs = WCS(h)
+    y, x = np.mgrid[:img.shape[0], :img.shape[1]]
+    ra, dec = wcs.pixel_to_world_values(x, y)
+    ra0, dec0 = wcs.wcs.crval
+    theta1 = -((ra - ra0 + 180.0) % 360.0 - 180.0) * np.cos(np.radians(dec0)) * 3600.0
+    theta2 = (dec - dec0) * 3600.0
+    ref = _midpoint_sersic(theta1, theta2, h["PIXSCALE"], re=0.05, n=0.5, q=np.cos(1.52), pa=0.0)
+    ref *= 10 ** (-0.4 * (22.0 - h["ZP_AB"]))
+    assert img.sum() == pytest.approx(ref.sum(), rel=1e-3)
+    assert np.max(np.abs(img - ref)) <= 3e-3 * ref.max()
