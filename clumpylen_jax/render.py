@@ -412,9 +412,10 @@ def strip_needed(re_arcsec, n, pixel_arcsec: float, core: int, *, q=None,
     major axis: those with more than `beyond` of their light outside the exact core block
     (radius (core // 2) pixels from the centre; R_e enlarged by `margin` for fits that grow
     it). Given q, only the light where the profile is thin counts: at major-axis radii
-    r with q·r < `thin_pixels` pixels — the whole profile when q·R_e is below a pixel, the
-    inner ridge of a cuspy (n > 1) elongated one however large its R_e. Beyond, order ≥ 3
-    sampling keeps pixel sums within 2e-3 of the light (tests/test_hard_cases.py)."""
+    r beyond `thin_pixels` pixels with q·r < `thin_pixels` pixels — most of the profile
+    when q·R_e is below a pixel, the inner ridge of a cuspy (n > 1) elongated one however
+    large its R_e; never a round one. Elsewhere order ≥ 3 sampling keeps pixel sums within
+    2e-3 of the light (tests/test_hard_cases.py)."""
     from scipy.special import gammaincc, gammaincinv
     re = np.asarray(re_arcsec, float) * margin
     n = np.asarray(n, float)
@@ -426,8 +427,10 @@ def strip_needed(re_arcsec, n, pixel_arcsec: float, core: int, *, q=None,
     r_core = (core // 2) * pixel_arcsec
     if q is None:
         return outside(r_core) > beyond
+    # thin: beyond a pixel from the centre (within it, the profile is small, not thin)
+    r_lo = max(r_core, thin_pixels * pixel_arcsec)
     r_thin = thin_pixels * pixel_arcsec / np.asarray(q, float)
-    return outside(r_core) - outside(np.maximum(r_thin, r_core)) > beyond
+    return outside(r_lo) - outside(np.maximum(r_thin, r_lo)) > beyond
 
 
 def strip_groups(re_arcsec, n, pixel_arcsec: float, core: int, *, q=None,

@@ -115,6 +115,10 @@ SERSIC_VG = {key: value_and_grad_fn(m) for key, m in SERSIC_MODELS.items()}
 def test_sersic_templates_take_the_core_and_the_strip_paths():
     for (_, strip), m in SERSIC_MODELS.items():
         assert m.layouts[0].host_strips == (strip, False)
+    off = build_model(_TEMPLATES[True], [Band("zero-sky", PIX, 1000.0, 0.0)],
+                      field_arcsec=SERSIC_FIELD,
+                      accuracy=Accuracy(source_order=3, exact_core=3, thin_strip=False))
+    assert off.layouts[0].host_strips == (False, False)
 
 
 def sersic_vg(n, re_pix, q, dtype):
