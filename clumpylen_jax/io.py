@@ -263,7 +263,10 @@ def save_rgb_png(path, r, g, b, *, stretch: float | None = None, Q: float | None
             top = float(intensity.max()) or 1.0
         # make_lupton_rgb saturates where asinh(Q I / stretch) / Q = 1.
         stretch = top * Q / math.sinh(Q) if Q > 0 else top
-    rgb = make_lupton_rgb(chans[0], chans[1], chans[2], minimum=list(mins), stretch=float(stretch), Q=Q)
+    # astropy divides by the intensity before masking where it is 0: a harmless warning
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rgb = make_lupton_rgb(chans[0], chans[1], chans[2], minimum=list(mins),
+                              stretch=float(stretch), Q=Q)
     with atomic_write(path) as tmp:
         mpimg.imsave(tmp, rgb, origin="lower", format="png")
     return rgb
