@@ -179,10 +179,10 @@ def _print_summary(summary, out: str) -> None:
     print(f"wrote {out}")
     if not isinstance(summary, dict):
         return
-    totals = summary.get("band_total_counts") or summary.get("total_counts") or {}
-    if isinstance(totals, dict):
-        for band, value in totals.items():
-            print(f"  {band}: total {value:.6g} counts/s" if isinstance(value, (int, float)) else f"  {band}: {value}")
+    for band, info in (summary.get("bands") or {}).items():
+        rate, counts = info.get("total_counts_per_s"), info.get("total_counts")
+        if isinstance(rate, (int, float)):
+            print(f"  {band}: source {rate:.6g} counts/s ({counts:.6g} counts in the exposure)")
     timings = summary.get("timings_s") or summary.get("timings") or {}
     if isinstance(timings, dict) and timings:
         total = timings.get("total")

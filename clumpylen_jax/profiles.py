@@ -22,20 +22,28 @@ from . import incgamma
 # ---------------------------------------------------------------- incomplete gamma
 
 
+def _newton_step(_, state):
+    """One Newton step in log x on P(a, x) = p; a and p ride in the loop state."""
+    a, p, logx = state
+    x = jnp.exp(logx)
+    f = gammainc(a, x) - p
+    # dP/dlogx = x^a e^-x / Γ(a), evaluated in logs to avoid overflow.
+    dlog = jnp.exp(a * logx - x - gammaln(a))
+    delta = f / jnp.maximum(dlog, jnp.finfo(x.dtype).tiny)
+    return a, p, logx - jnp.clip(delta, -2.0, 2.0)
+
+
 def _newton_gammainc_inverse(a, p, x0, iterations):
-    """x with P(a, x) = p by Newton steps in log x (keeps x > 0). No gradient."""
+    """x with P(a, x) = p by Newton steps in log x (keeps x > 0). No gradient.
+
+    The loop body is a module-level function, not a closure: fori_loop caches its
+    compiled body by the function object, and a closure made per call recompiled (and
+    leaked JIT code memory) on every eager call.
+    """
     a = jax.lax.stop_gradient(a)
     p = jax.lax.stop_gradient(p)
-
-    def step(_, logx):
-        x = jnp.exp(logx)
-        f = gammainc(a, x) - p
-        # dP/dlogx = x^a e^-x / Γ(a), evaluated in logs to avoid overflow.
-        dlog = jnp.exp(a * logx - x - gammaln(a))
-        delta = f / jnp.maximum(dlog, jnp.finfo(x.dtype).tiny)
-        return logx - jnp.clip(delta, -2.0, 2.0)
-
-    return jnp.exp(jax.lax.fori_loop(0, iterations, step, jnp.log(x0)))
+    a, p, x0 = jnp.broadcast_arrays(a, p, x0)
+    return jnp.exp(jax.lax.fori_loop(0, iterations, _newton_step, (a, p, jnp.log(x0)))[2])
 
 
 def _implicit_polish(a, p, x):
@@ -46,6 +54,7 @@ def _implicit_polish(a, p, x):
     return x - (gammainc(a, x) - p) / dpdx
 
 
+@jax.jit
 def sersic_b(n):
     """b(n) solving γ(2n, b) = Γ(2n)/2, so that R_e is the half-light radius.
 
@@ -67,6 +76,7 @@ def sersic_b(n):
     return _implicit_polish(a, half, b)
 
 
+@jax.jit
 def gammainc_inverse(a, p):
     """x with P(a, x) = p, 0 < p < 1, differentiable (implicit) in a and p."""
     a = jnp.asarray(a)
@@ -201,12 +211,27 @@ def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa
     """Flux of one elliptical Sérsic inside axis-aligned pixels [x_lo, x_hi] × [y_lo, y_hi].
 
     Pixel bounds are arrays of any (common) shape, in arcsec; profile parameters
-    are scalars (vmap over profiles). Exact up to a smooth 1-D angular
-    quadrature: in the frame where the ellipse is a circle the pixel is a
-    parallelogram, and its light is the signed sum over its edges of the light
-    in the triangle (centre, edge), whose radial integral is the regularised
+    are scalars (vmap over profiles). See `sersic_quad_flux_exact`.
+    """
+    xs = jnp.stack(jnp.broadcast_arrays(x_lo, x_hi, x_hi, x_lo), axis=-1)
+    ys = jnp.stack(jnp.broadcast_arrays(y_lo, y_lo, y_hi, y_hi), axis=-1)
+    return sersic_quad_flux_exact(xs, ys, flux=flux, re_arcsec=re_arcsec, n=n, q=q,
+                                  pa_rad=pa_rad, center1=center1, center2=center2, b=b,
+                                  nodes=nodes, q_table=q_table, q_index=q_index,
+                                  counterclockwise=True)
+
+
+def sersic_quad_flux_exact(xs, ys, *, flux, re_arcsec, n, q, pa_rad, center1, center2, b=None,
+                           nodes=_FAN_NODES, q_table=None, q_index=None, counterclockwise=False):
+    """Flux of one elliptical Sérsic inside convex quadrilaterals with corners (xs, ys).
+
+    xs, ys: [..., 4] corners in order around each quadrilateral (either sense unless
+    `counterclockwise`), arcsec; profile parameters are scalars (vmap over profiles). Exact
+    up to a smooth 1-D angular quadrature: in the frame where the ellipse is a circle the
+    quadrilateral is another one, and its light is the signed sum over its edges of the
+    light in the triangle (centre, edge), whose radial integral is the regularised
     incomplete gamma function. No sample sits on the cusp, whatever R_e and n.
-    Pixels holding the centre sum P = light inside; the others use Q = 1 − P
+    Quadrilaterals holding the centre sum P = light inside; the others use Q = 1 − P
     and the winding number, which keeps relative precision in the wings.
     q_table: an `incgamma.QTable` of Q(2n, ·) (made here when None); q_index: this
     profile's order in it when it holds several (inside a vmap over profiles).
@@ -216,16 +241,23 @@ def sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, *, flux, re_arcsec, n, q, pa
     if q_table is None:
         q_table = incgamma.q_table(2 * jnp.asarray(n, jnp.result_type(re_arcsec, float)))
     gl_x, gl_w = np.polynomial.legendre.leggauss(nodes)
-    dtype = jnp.result_type(x_lo, re_arcsec)
+    dtype = jnp.result_type(xs, re_arcsec)
     t = jnp.asarray((gl_x + 1) / 2, dtype)
     w = jnp.asarray(gl_w / 2, dtype)
-    xs = jnp.stack(jnp.broadcast_arrays(x_lo, x_hi, x_hi, x_lo), axis=-1)
-    ys = jnp.stack(jnp.broadcast_arrays(y_lo, y_lo, y_hi, y_hi), axis=-1)
+    if not counterclockwise:
+        # the fan's signs assume counter-clockwise corners: reverse the clockwise ones
+        area2 = jnp.sum(xs * jnp.roll(ys, -1, axis=-1) - jnp.roll(xs, -1, axis=-1) * ys, axis=-1)
+        flip = (area2 < 0)[..., None]
+        xs = jnp.where(flip, xs[..., ::-1], xs)
+        ys = jnp.where(flip, ys[..., ::-1], ys)
     u, v = to_ellipse_frame(xs, ys, center1, center2, pa_rad)
     v = v / q
-    # a corner within 1e-9 pixel of the centre is the centre: snapping it to exactly 0
-    # sends its edges down the degenerate branch instead of through 0/0 in the gradient
-    tol = 1e-9 * jnp.abs(x_hi - x_lo)[..., None]
+    # a corner within 1e-9 of the quadrilateral's size from the centre is the centre:
+    # snapping it to exactly 0 sends its edges down the degenerate branch instead of
+    # through 0/0 in the gradient
+    size = jnp.max(jnp.abs(xs - jnp.roll(xs, 2, axis=-1)) + jnp.abs(ys - jnp.roll(ys, 2, axis=-1)),
+                   axis=-1)
+    tol = 1e-9 * jax.lax.stop_gradient(size)[..., None]
     near = (jnp.abs(u) < tol) & (jnp.abs(v) < tol)
     u = jnp.where(near, 0.0, u)
     v = jnp.where(near, 0.0, v)

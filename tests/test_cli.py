@@ -125,7 +125,8 @@ def fake_modules(monkeypatch):
     def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True):
         calls["simulate"] = dict(scene=scene, out_dir=out_dir, bands=bands, seed=seed, noise=noise,
                                  progress=progress)
-        return {"band_total_counts": {"F200W": 12.5}, "timings_s": {"render": 0.5}}
+        return {"bands": {"F200W": {"total_counts_per_s": 12.5, "total_counts": 37500.0}},
+                "timings_s": {"render": 0.5}}
 
     for mod, name, fn in [("pipeline", "simulate", simulate),
                           ("plotting", "plot_run", lambda d: calls.setdefault("plot", d)),
@@ -146,7 +147,7 @@ def test_simulate_passes_overrides(capsys, tmp_path, fake_modules):
     assert c["scene"].name == "tiny" and c["out_dir"] == str(out)
     assert (c["bands"], c["seed"], c["noise"], c["progress"]) == (["F200W"], 5, False, True)
     assert fake_modules["plot"] == str(out)
-    assert "F200W" in stdout
+    assert "F200W: source 12.5 counts/s (37500 counts in the exposure)" in stdout
     code, stdout, _ = run(capsys, "simulate", p, "--out", str(out), "--quiet")
     c = fake_modules["simulate"]
     assert code == 0 and stdout == "" and (c["bands"], c["seed"], c["noise"], c["progress"]) == (None, None, None, False)
