@@ -33,13 +33,14 @@ in σ scale with the source's flux, which is stated per case.
   and by ray tracing: the error of linearisation against distance to the caustic.
   Reference as for the lensed cases.
 
-Run: ``python benchmarks/bench_accuracy.py [--parts sersic,lensed,caustic,psf] [--quick]``.
+Run: ``python benchmarks/bench_accuracy.py [--parts sersic,lensed,caustic,host,psf] [--quick]``.
 Writes benchmarks/results/accuracy.{json,md} and accuracy.png.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -53,8 +54,8 @@ import numpy as np  # noqa: E402
 
 import clumpylen_jax  # noqa: E402,F401  (enables x64)
 from clumpylen_jax import profiles  # noqa: E402
-from clumpylen_jax.lensing.analytic import SIS  # noqa: E402
-from clumpylen_jax.model import Accuracy, Band, build_model  # noqa: E402
+from clumpylen_jax.lensing.analytic import SIS, MassSheet  # noqa: E402
+from clumpylen_jax.model import ACCURACY_PRESETS, Accuracy, Band, build_model  # noqa: E402
 from clumpylen_jax.pixels import Grid  # noqa: E402
 from clumpylen_jax.source import Clumps, Sersic, Source  # noqa: E402
 
@@ -367,6 +368,66 @@ def run_caustic(quick=False):
     return rows, meta
 
 
+# ============================================================ part 2c: a compact lensed host
+
+HOST_KAPPA = 0.5                  # a mass sheet: β = (1 − κ) θ, a linear lens map
+HOST_RE_MAS = (1.0, 2.5, 5.0, 20.0)
+HOST_SETTINGS = {
+    "sampled at lens-pixel centres (exact_core 0)": Accuracy(exact_core=0),
+    "fast": ACCURACY_PRESETS["fast"],
+    "default (exact footprints near the centre)": ACCURACY_PRESETS["default"],
+    "high": ACCURACY_PRESETS["high"],
+}
+
+
+def run_host(quick=False):
+    """A compact n = 4 host (q 0.7, 10 counts/s) behind a mass sheet κ = 0.5, 2.5 mas lens
+    pixels, 0.03" detector pixels, source_flux_fraction 0.99999 in every setting.
+
+    The sheet maps the source linearly, so the lensed image is exactly an unlensed Sérsic
+    with R_e / (1 − κ), flux / (1 − κ)² and centre / (1 − κ): the reference is that
+    profile's exact pixel integrals (the unlensed path, tested against scipy). What is
+    measured is the host's sampling on the lens plane near its cusp: at lens-pixel
+    centres, or (default) integrated exactly over sub-pixel footprints there.
+    """
+    sigma = sigma_of(LENS_BAND)
+    flux, center = 10.0, np.array([0.0113, -0.0071])
+    field = ((-0.9, 0.9), (-0.9, 0.9))
+    lens = MassSheet(jnp.asarray(HOST_KAPPA), jnp.asarray([0.0, 0.0]))
+    rows = []
+    for re_mas in HOST_RE_MAS[1:3] if quick else HOST_RE_MAS:
+        def host(f, re, c):
+            return Source(bulge=Sersic(jnp.asarray([f]), jnp.asarray(re), jnp.asarray(4.0),
+                                       jnp.asarray(0.7), jnp.asarray(0.4), jnp.asarray(c)))
+        s = 1 - HOST_KAPPA
+        ref_src = host(flux / s**2, re_mas * 1e-3 / s, center / s)
+        ref_model = build_model(ref_src, [LENS_BAND], field_arcsec=field,
+                                accuracy=Accuracy(source_order=6, exact_core=7))
+        ref = np.asarray(RENDER(ref_model, ref_src)[0])
+        src = host(flux, re_mas * 1e-3, center)
+        for name, acc in HOST_SETTINGS.items():
+            acc = dataclasses.replace(acc, source_flux_fraction=0.99999)
+            t = time.perf_counter()
+            model = build_model(src, [LENS_BAND], lens=lens, field_arcsec=field,
+                                lens_pixel_arcsec=LENS_PIXEL, accuracy=acc)
+            img = np.asarray(C.block(RENDER(model, src))[0])
+            cold = time.perf_counter() - t
+            warm = C.warm_time(RENDER, model, src, repeats=3)
+            m = error_metrics(img, ref, sigma)
+            core = model.host_core_index
+            rows.append(dict(case="lensed-host", knob=f"R_e {re_mas:g} mas: {name}",
+                             dtype="float64", cold_s=cold, warm_s=warm,
+                             exact_pixels=0 if core is None else int(core.size), **m))
+            print(f"  host R_e={re_mas:g} mas {name:45s} max {m['max_err_sigma']:.3g}σ "
+                  f"({m['max_err_rel_peak']:.2e} of peak) flux {m['flux_rel_err']:.2e} "
+                  f"warm {warm * 1e3:.1f} ms", flush=True)
+    meta = dict(host="n 4, q 0.7, 10 counts/s", lens=f"mass sheet kappa={HOST_KAPPA}",
+                sigma=sigma, lens_pixel_arcsec=LENS_PIXEL,
+                reference="the unlensed image of the equivalent Sérsic, exact pixels "
+                          "(source_order 6, exact_core 7)")
+    return rows, meta
+
+
 # ============================================================ part 3: PSF oversampling, truncation
 
 PSF_PIXEL = 0.1
@@ -453,7 +514,7 @@ def plot(rows, path):
     import matplotlib.ticker
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    cases = [c for c in ("sersic", "lensed-near", "lensed-far", "caustic", "psf")
+    cases = [c for c in ("sersic", "lensed-near", "lensed-far", "caustic", "lensed-host", "psf")
              if any(r["case"] == c for r in rows)]
     fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.8), squeeze=False)
     for ax, case in zip(axes[0], cases):
@@ -519,7 +580,7 @@ def markdown(rows, meta):
            "of the case's exposure; errors are against the converged reference of each case "
            "(see the JSON `meta` for its definition and its own convergence). Warm: median "
            "of repeated calls of the compiled render; cold: build + compile + first call.", ""]
-    for case in ("sersic", "lensed-near", "lensed-far", "caustic", "psf"):
+    for case in ("sersic", "lensed-near", "lensed-far", "caustic", "lensed-host", "psf"):
         rs = [r for r in rows if r["case"] == case]
         if not rs:
             continue
@@ -533,7 +594,7 @@ def markdown(rows, meta):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--parts", default="sersic,lensed,caustic,psf")
+    ap.add_argument("--parts", default="sersic,lensed,caustic,host,psf")
     ap.add_argument("--quick", action="store_true", help="a few settings per part")
     args = ap.parse_args(argv)
     parts = args.parts.split(",")
@@ -551,13 +612,18 @@ def main(argv=None):
         r, m = run_caustic(args.quick)
         rows += r
         meta["caustic"] = m
+    if "host" in parts:
+        r, m = run_host(args.quick)
+        rows += r
+        meta["lensed-host"] = m
     if "psf" in parts:
         r, m = run_psf(args.quick)
         rows += r
         meta["psf"] = m
     meta["total_s"] = time.perf_counter() - t0
     meta["peak_rss_mb"] = C.peak_rss_mb()
-    suffix = "" if parts == ["sersic", "lensed", "caustic", "psf"] else "_" + "_".join(parts)
+    suffix = ("" if parts == ["sersic", "lensed", "caustic", "host", "psf"]
+              else "_" + "_".join(parts))
     C.write_json("accuracy" + suffix, {"meta": meta, "rows": rows})
     C.write_text(f"accuracy{suffix}.md", markdown(rows, meta))
     plot(rows, C.RESULTS / f"accuracy{suffix}.png")

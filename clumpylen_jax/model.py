@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import convolve, noise, render, tiles
+from . import convolve, noise, profiles, render, tiles
 from .errors import ConfigError, require
 from .lensing.linearised import (ClumpImages, FootprintIndex, bilinear_patch,
                                  image_magnifications, lensed_clumps,
@@ -327,6 +327,13 @@ class SceneModel(eqx.Module):
     lin_stamp_index: tuple = ()
     lin_hr_sides: tuple = eqx.field(static=True, default=())
     lin_hr_index: tuple = ()
+    # traced pixels near the images of a host component's centre (indices into the traced
+    # pixels), their sub-pixels' source-plane footprints' corners [K, S, 4] and 1 / their areas
+    host_core_index: Optional[jnp.ndarray] = None
+    host_core_b1: Optional[jnp.ndarray] = None
+    host_core_b2: Optional[jnp.ndarray] = None
+    host_core_inv_area: Optional[jnp.ndarray] = None
+    host_core_origin: tuple = eqx.field(static=True, default=(0.0, 0.0))   # corners are from it
 
     @property
     def band_names(self):
@@ -414,15 +421,47 @@ class SceneModel(eqx.Module):
         units, fluxes = [], []
         if source.bulge is not None:
             s = source.bulge
-            units.append(render.sersic_unit_brightness(h1, h2, **render._sersic_kw(s)) @ hw)
+            kw = render._sersic_kw(s)
+            units.append(self._exact_host_core(
+                render.sersic_unit_brightness(h1, h2, **kw) @ hw, kw))
             fluxes.append(s.flux)
         if source.disk is not None:
-            units.append(render.disk_unit_brightness(source.disk, h1, h2) @ hw)
-            fluxes.append(source.disk.sersic.flux)
+            d = source.disk
+            u = render.disk_unit_brightness(d, h1, h2) @ hw
+            if d.arms is None and d.texture is None:
+                u = self._exact_host_core(u, render._disk_kw(d))
+            elif self.host_core_index is not None:
+                # arms × texture vary slowly: the sampled modulation times the exact Sérsic
+                kw = render._disk_kw(d)
+                i = self.host_core_index
+                smooth = render.sersic_unit_brightness(h1[i], h2[i], **kw) @ hw
+                u = self._exact_host_core(u, kw, modulation=u[i] / jnp.maximum(
+                    smooth, jnp.finfo(smooth.dtype).tiny))
+            units.append(u)
+            fluxes.append(d.sersic.flux)
         if not units:
             return None, None
         area = self.hr_grid.pixel_arcsec**2
         return jnp.stack(units, -1) * area, jnp.stack(fluxes, 0)
+
+    def _exact_host_core(self, brightness, kw, modulation=None):
+        """Host brightness [M] at the traced pixels with, near the images of its centre, the
+        mean over each pixel instead of a sample: the exact integral of the Sérsic over the
+        pixel's source-plane footprint (a quadrilateral) divided by its area (a sample
+        misses or invents the light of a cusp: +3 % of an n = 4 host of R_e 4 lens pixels).
+        modulation: the disk's arms × texture factor [K] at those pixels, or None."""
+        if self.host_core_index is None:
+            return brightness
+        idx = self.host_core_index
+        # corners relative to a point near the host (sub-pixel edges of 1e-4" would lose
+        # two digits next to β ~ 10" in float32)
+        kw = dict(kw, center1=kw["center1"] - self.host_core_origin[0],
+                  center2=kw["center2"] - self.host_core_origin[1])
+        exact = _footprint_mean_brightness(self.host_core_b1, self.host_core_b2,
+                                           self.host_core_inv_area, kw)
+        if modulation is not None:
+            exact = exact * modulation
+        return brightness.at[idx].set(exact.astype(brightness.dtype))
 
     def _clump_ray_values(self, source: Source, stamps=None):
         """Ray-traced clump flux [B, P] of the pixels with rays (counts/s), or None.
@@ -751,6 +790,8 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
         raise ConfigError("render.field_arcsec", field_arcsec,
                           "a lens-plane field where the source lands (no pixel of it maps "
                           f"within {radius:.3g}\" of the source centre {tuple(center)})")
+    host_core = _host_core_layout(source, corner_b1, corner_b2, rows, cols, footprint_index,
+                                  accuracy, dtype)
     n_clumps = source.clumps.count if has_clumps else 0
     traced_clumps = np.arange(n_clumps)
     lin = dict(lin_images=None)
@@ -814,7 +855,81 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                       jnp.asarray(b1, dtype), jnp.asarray(b2, dtype), jnp.asarray(wxy, dtype),
                       jnp.asarray(c1[:, 0], dtype), jnp.asarray(c2[:, 0], dtype),
                       ray_rows=jnp.asarray(rows[sel]), ray_cols=jnp.asarray(cols[sel]),
-                      ray_window=ray_window, **lin)
+                      ray_window=ray_window, **lin, **host_core)
+
+
+_HOST_CORE_REACHES = 4     # × exact_core: footprint reaches from a host centre integrated exactly
+_HOST_CORE_SPLIT = 2       # each such pixel as 2 × 2 sub-pixels, each with its own footprint
+_HOST_CORE_DET_CHANGE = 0.01   # largest relative change of |μ| across a sub-pixel integrated exactly
+
+
+def _host_core_layout(source: Source, corner_b1, corner_b2, rows, cols, footprint_index,
+                      accuracy: Accuracy, dtype):
+    """The traced pixels whose host light is integrated exactly (`SceneModel._exact_host_core`).
+
+    Those whose source-plane footprint lies within 4·exact_core of its own reaches from a
+    host component's centre, where a sample is off by % near a cusp (the residual total
+    flux error of an n = 4 host of R_e 4 lens pixels behind a mass sheet: 5e-4 with
+    2·exact_core, 2e-4 with 4, 1.5e-4 with 6, +3 % with none), and where the lens map is
+    linear enough. Each is split into 2 × 2 sub-pixels whose footprints (corners by
+    bilinear interpolation of the pixel's traced corners) are integrated exactly and
+    divided by their areas: the mean |dθ/dβ| of a sub-pixel stands for the local one.
+    That holds where |μ| changes by < 1 % across each sub-pixel; near a critical curve it
+    changes by tens of % across a pixel, and a sample at the pixel's centre is the better
+    estimate there (an n = 1 host by an SIS caustic lost 3e-4 of its flux otherwise).
+    The 4 × 4 split changed a compact host behind an SIS by 1e-4 and cost 4× more.
+    """
+    comps = [{k: np.asarray(v, float) for k, v in kw.items()} for kw in
+             ([render._sersic_kw(source.bulge)] if source.bulge is not None else [])
+             + ([render._disk_kw(source.disk)] if source.disk is not None else [])]
+    if not comps or accuracy.exact_core == 0:
+        return {}
+    m1, m2, reach = footprint_index.m1, footprint_index.m2, footprint_index.reach
+    near = np.zeros(m1.shape, bool)
+    for kw in comps:
+        near |= (np.hypot(m1 - kw["center1"], m2 - kw["center2"])
+                 < _HOST_CORE_REACHES * accuracy.exact_core * reach)
+    idx = np.nonzero(near)[0]
+    if idx.size == 0:
+        return {}
+    r, k = rows[idx], cols[idx]
+    # the pixel's corners (lower left, lower right, upper right, upper left), then the
+    # sub-pixels' corners by bilinear interpolation: [K, split², 4]
+    ll, lr, ur, ul = ((r, k), (r, k + 1), (r + 1, k + 1), (r + 1, k))
+    f = np.arange(_HOST_CORE_SPLIT + 1) / _HOST_CORE_SPLIT
+    fy, fx = np.meshgrid(f, f, indexing="ij")
+
+    def sub_corners(cb):
+        a, b, c_, d = (cb[p][:, None, None] for p in (ll, lr, ur, ul))
+        g = (a * (1 - fx) * (1 - fy) + b * fx * (1 - fy) + c_ * fx * fy + d * (1 - fx) * fy)
+        return np.stack([g[:, :-1, :-1], g[:, :-1, 1:], g[:, 1:, 1:], g[:, 1:, :-1]],
+                        -1).reshape(idx.size, -1, 4)
+
+    v1, v2 = sub_corners(corner_b1), sub_corners(corner_b2)
+    e1, e2 = np.roll(v1, -1, -1) - v1, np.roll(v2, -1, -1) - v2
+    turn = e1 * np.roll(e2, -1, -1) - e2 * np.roll(e1, -1, -1)
+    convex = np.all(turn > 0, -1) | np.all(turn < 0, -1)
+    area = 0.5 * np.abs(np.sum(v1 * np.roll(v2, -1, -1) - np.roll(v1, -1, -1) * v2, -1))
+    # |det| changes across a bilinear footprint by |w × e| along each edge e, with w its
+    # twist v0 − v1 + v2 − v3: relative to the mean (the area), at most |w| Σ|e| / area
+    twist = np.hypot(v1[..., 0] - v1[..., 1] + v1[..., 2] - v1[..., 3],
+                     v2[..., 0] - v2[..., 1] + v2[..., 2] - v2[..., 3])
+    edges = np.hypot(e1[..., 0], e2[..., 0]) + np.hypot(e1[..., 1], e2[..., 1])
+    ok = convex & (area > 0) & (twist * edges < _HOST_CORE_DET_CHANGE * np.maximum(area, 1e-300))
+    keep = np.all(ok, -1)
+    if not np.any(keep):
+        return {}
+    origin = (float(comps[0]["center1"]), float(comps[0]["center2"]))
+    return dict(host_core_index=jnp.asarray(idx[keep]),
+                host_core_b1=jnp.asarray(v1[keep] - origin[0], dtype),
+                host_core_b2=jnp.asarray(v2[keep] - origin[1], dtype),
+                host_core_inv_area=jnp.asarray(1.0 / area[keep], dtype), host_core_origin=origin)
+
+
+@jax.jit
+def _footprint_mean_brightness(b1, b2, inv_area, kw):
+    """Mean brightness of a unit-flux Sérsic over footprints [K, S, 4] split in S parts."""
+    return jnp.mean(profiles.sersic_quad_flux_exact(b1, b2, flux=1.0, **kw) * inv_area, -1)
 
 
 def _linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, footprint_index,

@@ -90,7 +90,8 @@ def _accuracy(scene) -> model_mod.Accuracy:
     base = model_mod.ACCURACY_PRESETS[a.preset]
     return dataclasses.replace(base, lens_subsampling=a.subsampling,
                                psf_oversampling=a.psf_oversampling, source_mode=a.source_mode,
-                               linearise_tolerance=a.linearise_tolerance)
+                               linearise_tolerance=a.linearise_tolerance,
+                               source_flux_fraction=a.source_flux_fraction)
 
 
 def build_lens(scene, cosmology=None):

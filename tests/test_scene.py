@@ -6,6 +6,7 @@ import sys
 import tomllib
 import types
 
+import numpy as np
 import pytest
 
 from clumpylen_jax import scene as sc
@@ -137,7 +138,9 @@ def test_accuracy_table_and_dtype():
     d["render"] = {"accuracy": {"preset": "high", "subsampling": 6, "dtype": "float32"}}
     s = sc.scene_from_dict(d)
     high = sc.ACCURACY_PRESETS["high"]
-    assert s.render.accuracy == sc.Accuracy("high", 6, high["psf_oversampling"], high["source_mode"])
+    assert s.render.accuracy == sc.Accuracy("high", 6, high["psf_oversampling"], high["source_mode"],
+                                            source_flux_fraction=high["source_flux_fraction"])
+    assert high["source_flux_fraction"] == 0.999
     assert s.render.dtype == "float32"
     d["render"]["dtype"] = "float64"
     assert error_for(d).setting == "render.accuracy.dtype"
@@ -156,6 +159,44 @@ def test_linearise_tolerance_key_reaches_the_model_and_is_checked():
     d["render"]["accuracy"]["linearise_tolerance"] = -1.0
     e = error_for(d)
     assert e.setting == "render.accuracy.linearise_tolerance" and "-1" in str(e)
+
+
+def test_source_flux_fraction_key_keeps_a_lensed_hosts_halo(tmp_path):
+    """A mass sheet magnifies every ray by 1/(1 - κ)²: the lensed total is that times the
+    host's flux, less the light beyond the traced disc (1 % of an n = 4 host at 0.99).
+    The host's R_e is 4 lens pixels and its centre on a pixel corner: sampled at pixel
+    centres it came out 3 % too bright (the cusp trap), hence the exact footprint
+    integrals around the images of a host's centre."""
+    from clumpylen_jax import pipeline
+    d = minimal()
+    d["render"] = {"accuracy": {"source_flux_fraction": 0.2}}
+    e = error_for(d)
+    assert e.setting == "render.accuracy.source_flux_fraction" and "[0.5, 1)" in str(e)
+    d["render"]["accuracy"]["source_flux_fraction"] = 1.0
+    assert error_for(d).setting == "render.accuracy.source_flux_fraction"
+    scene = {
+        "scene": {"name": "sheet", "z_source": 2.0},
+        "source": {"center_arcsec": [0.0, 0.0],
+                   "bulge": {"magnitudes": {"F200W": 20.0}, "re_arcsec": 0.01, "n": 4.0}},
+        "lens": {"z_lens": 0.5, "center_radec_deg": [10.0, 0.0],
+                 "components": [{"kind": "sheet", "kappa": 0.5}]},
+        "render": {"lens_pixel_arcsec": 0.005, "field_arcsec": {"x": [-1.4, 1.4], "y": [-1.4, 1.4]},
+                   "accuracy": {"preset": "fast", "subsampling": 1}},
+        "bands": [{"instrument": "JWST/NIRCam", "filter": "F200W", "exptime_s": 100.0,
+                   "psf": "none"}],
+        "output": {"noise": False},
+    }
+    totals = {}
+    for fraction in (0.99, 0.9999):
+        scene["render"]["accuracy"]["source_flux_fraction"] = fraction
+        prep = pipeline.prepare(sc.scene_from_dict(scene))
+        assert prep.accuracy.source_flux_fraction == fraction
+        flux = float(prep.source.bulge.flux[0])
+        image = np.asarray(prep.model.noiseless(prep.source)[0])
+        light = image.sum() - prep.model.layouts[0].sky_counts_per_s * image.size
+        totals[fraction] = light / (4.0 * flux)
+    assert 0.985 < totals[0.99] < 0.995
+    assert abs(totals[0.9999] - 1) < 3e-4
 
 
 # --- validation messages -----------------------------------------------------
