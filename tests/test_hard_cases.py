@@ -327,6 +327,37 @@ def test_lensed_clumps_on_caustics_finite(params, key):
     assert float(jnp.min(imgs[0])) >= 0.0
 
 
+# a host whose images, at build time, get exact sub-pixel footprints near its centre
+# (model._host_core_layout); hypothesis then moves it anywhere, onto the caustic too
+_HOST_TEMPLATE = Source(bulge=Sersic(jnp.array([1.0]), jnp.array(0.005), jnp.array(4.0),
+                                     jnp.array(0.8), jnp.array(0.3), jnp.array([0.3, 0.05])))
+HOST_VG = {}
+for _d in DTYPES:
+    _m = build_model(_HOST_TEMPLATE.astype(_d), [Band("b", 0.03, 1000.0, 0.1)],
+                     lens=SIS(jnp.array(1.0), jnp.array([0.0, 0.0])),
+                     field_arcsec=((0.9, 1.7), (-0.2, 0.6)), lens_pixel_arcsec=0.005,
+                     accuracy=Accuracy(lens_subsampling=1, source_order=2, exact_core=3),
+                     dtype=_d)
+    assert _m.host_core_index is not None and _m.host_core_index.size > 100
+    HOST_VG[_d] = value_and_grad_fn(_m)
+HOST_CENTER = st.one_of(
+    st.just((0.3, 0.05)),                                  # where the exact pixels are
+    st.just((0.0, 0.0)),                                   # on the point caustic
+    st.tuples(st.floats(0.28, 0.32), st.floats(0.03, 0.07)),
+    st.tuples(st.floats(-0.4, 0.4), st.floats(-0.4, 0.4)),
+)
+
+
+@given(center=HOST_CENTER, log_flux=st.floats(-12, 8), re=log_uniform(1e-5, 0.05),
+       n=SERSIC_N, q=Q, pa=PA, dtype_index=st.integers(0, 1))
+def test_lensed_host_with_exact_footprints_finite(center, log_flux, re, n, q, pa, dtype_index):
+    dtype = DTYPES[dtype_index]
+    src = sersic_source(10.0 ** log_flux, re, n, q, pa, center, dtype)
+    (_, imgs), grads = HOST_VG[dtype](src)
+    assert_finite_and_dtype(imgs, grads, dtype, "lensed host")
+    assert float(jnp.min(imgs[0])) >= 0.0
+
+
 def test_lensed_point_caustic_makes_a_ring():
     """A clump exactly on the SIS caustic: light spread over the Einstein ring, not a NaN."""
     src = Source(clumps=clumps(np.zeros((N_CLUMPS, 2)), np.ones(N_CLUMPS),
