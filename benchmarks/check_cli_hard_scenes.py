@@ -63,60 +63,40 @@ exptime_s = 1000.0
 sky_counts_per_s = 0.1
 psf = "none"
 """,
-    "lensed-caustic": """
-[scene]
-name = "lensed-caustic"
-z_source = 2.0
-[source]
-center_arcsec = [{cx}, {cy}]
-[source.disk]
-magnitudes = {{ F150W = {mag} }}
-re_arcsec = {re}
-n = {n}
-q = {q}
-pa_rad = {pa}
-[lens]
-z_lens = 0.4
-center_radec_deg = [150.0, 2.0]
-components = [ {{ kind = "sis", theta_e_arcsec = 1.0 }} ]
-[render]
-field_arcsec = {{ x = [-1.55, 1.55], y = [-1.55, 1.55] }}
-accuracy = {{ preset = "default", source_flux_fraction = 0.9999 }}
-[[bands]]
-instrument = "JWST/NIRCam"
-filter = "F150W"
-exptime_s = 3000.0
-sky_counts_per_s = 0.2
-psf = "none"
-""",
-    "lensed-compact": """
-[scene]
-name = "lensed-compact"
-z_source = 2.0
-[source]
-center_arcsec = [{cx}, {cy}]
-[source.bulge]
-magnitudes = {{ F150W = {mag} }}
-re_arcsec = {re}
-n = {n}
-q = {q}
-pa_rad = {pa}
-[lens]
-z_lens = 0.4
-center_radec_deg = [150.0, 2.0]
-components = [ {{ kind = "sis", theta_e_arcsec = 1.0 }} ]
-[render]
-field_arcsec = {{ x = [-1.5, 1.5], y = [-1.5, 1.5] }}
-accuracy = {{ preset = "default", source_flux_fraction = 0.9999 }}
-[[bands]]
-instrument = "JWST/NIRCam"
-filter = "F150W"
-exptime_s = 3000.0
-sky_counts_per_s = 0.2
-psf = "none"
-pixel_arcsec = 0.03
-""",
 }
+
+# the two lensed scenes differ in the host component, the field and the detector pixel
+_LENSED = """
+[scene]
+name = "{name}"
+z_source = 2.0
+[source]
+center_arcsec = [{cx}, {cy}]
+[source.{component}]
+magnitudes = {{ F150W = {mag} }}
+re_arcsec = {re}
+n = {n}
+q = {q}
+pa_rad = {pa}
+[lens]
+z_lens = 0.4
+center_radec_deg = [150.0, 2.0]
+components = [ {{ kind = "sis", theta_e_arcsec = 1.0 }} ]
+[render]
+field_arcsec = {{ x = [-{half}, {half}], y = [-{half}, {half}] }}
+accuracy = {{ preset = "default", source_flux_fraction = 0.9999 }}
+[[bands]]
+instrument = "JWST/NIRCam"
+filter = "F150W"
+exptime_s = 3000.0
+sky_counts_per_s = 0.2
+psf = "none"
+"""
+SCENES["lensed-caustic"] = _LENSED.replace("{name}", "lensed-caustic").replace(
+    "{component}", "disk").replace("{half}", "1.55")
+SCENES["lensed-compact"] = _LENSED.replace("{name}", "lensed-compact").replace(
+    "{component}", "bulge").replace("{half}", "1.5") + "pixel_arcsec = 0.03\n"
+
 
 
 def sersic(x, y, flux, re, n, q, pa, cx, cy):
