@@ -227,6 +227,11 @@ def _host_strips(source: Source, pixel_arcsec: float, core: int):
             and need(disk.sersic, disk.q_projected))
 
 
+def _cols(a, lo, hi):
+    """Columns lo:hi of a [T, n] operator array, or None."""
+    return None if a is None else a[:, lo:hi]
+
+
 def _trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
     """β of rays θ (numpy, flat), computed with the lens in float64 by chunks."""
     out1 = np.empty_like(theta1)
@@ -644,14 +649,14 @@ class SceneModel(eqx.Module):
             for k, lay in enumerate(self.layouts):
                 g = lay.grid.subdivided(lay.oversampling)
                 if g not in cache:
-                    (ty, wy), (tx, wx) = ops = self.rebin_ops[k]
+                    (ty, wy, my), (tx, wx, mx) = ops = self.rebin_ops[k]
                     parts = {}
                     if hosts is not None:
                         parts["hosts"] = rebin_sparse(hosts, ops, g.shape)
                     if win is not None:
                         parts["clumps"] = rebin_sparse(
-                            win, ((ty[:, r0:r1], wy[:, r0:r1]), (tx[:, c0:c1], wx[:, c0:c1])),
-                            g.shape)
+                            win, ((ty[:, r0:r1], wy[:, r0:r1], _cols(my, r0, r1)),
+                                  (tx[:, c0:c1], wx[:, c0:c1], _cols(mx, c0, c1))), g.shape)
                     if g in lin:
                         parts["linearised"] = lin[g]
                     cache[g] = parts
@@ -824,7 +829,8 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     b1, b2 = rays_in_pixels(corner_b1, corner_b2, rows[sel], cols[sel], (ox.ravel(), oy.ravel()))
     c1, c2 = rays_in_pixels(corner_b1, corner_b2, rows, cols, (np.zeros(1), np.zeros(1)))
     del corner_b1, corner_b2
-    rebin_ops = tuple(tuple((jnp.asarray(t), jnp.asarray(w, dtype)) for t, w in
+    rebin_ops = tuple(tuple((jnp.asarray(t), jnp.asarray(w, dtype),
+                             None if m is None else jnp.asarray(m, dtype)) for t, w, m in
                             sparse_rebin_operators(hr, l.grid.subdivided(l.oversampling)))
                       for l in layouts)
 

@@ -111,13 +111,29 @@ def rebin(image, wy, wx):
     return jnp.einsum("ji,...ik,lk->...jl", wy, image, wx)
 
 
+def overlap_moments(src_edges, dst_edges):
+    """M[j, i] = ∫ (s − ½) ds over the part of source pixel i in destination pixel j, with
+    s ∈ [0, 1] across the source pixel (1-D, numpy): the share of a linear slope's flux
+    that the overlap takes. Σ_j M[j, i] = 0 for a pixel inside the destination range."""
+    src_edges = np.asarray(src_edges, float)
+    dst_edges = np.asarray(dst_edges, float)
+    lo = np.maximum(dst_edges[:-1, None], src_edges[None, :-1])
+    hi = np.minimum(dst_edges[1:, None], src_edges[None, 1:])
+    width = np.diff(src_edges)[None, :]
+    s0 = (lo - src_edges[None, :-1]) / width
+    s1 = (hi - src_edges[None, :-1]) / width
+    return np.where(hi > lo, 0.5 * (s1 - s0) * (s1 + s0 - 1.0), 0.0)
+
+
 def sparse_overlap(src_edges, dst_edges):
-    """The overlap operator of `overlap_matrix` by source pixel: (targets [T, n], weights [T, n]).
+    """The overlap operator of `overlap_matrix` by source pixel: (targets [T, n], weights
+    [T, n], moments [T, n] or None).
 
     Source pixel i puts weights[t, i] of its flux into destination pixel targets[t, i];
     T is the most destination pixels any source pixel touches (2 when destination
     pixels are the larger). Targets are non-decreasing along i for every t (zero-weight
-    padding included), so that sums over them can use sorted segment sums.
+    padding included), so that sums over them can use sorted segment sums. moments: the
+    `overlap_moments` of the same pairs, None when the grids nest (all zero).
     """
     w = overlap_matrix(src_edges, dst_edges)                 # [m, n]
     nz = w > 0
@@ -125,32 +141,57 @@ def sparse_overlap(src_edges, dst_edges):
     T = max(int(count.max()), 1)
     first = np.where(count > 0, np.argmax(nz, axis=0), 0)
     targets = np.minimum(first[None, :] + np.arange(T)[:, None], w.shape[0] - 1)
-    weights = np.take_along_axis(w, targets, axis=0) * (np.arange(T)[:, None] < count[None, :])
+    valid = np.arange(T)[:, None] < count[None, :]
+    weights = np.take_along_axis(w, targets, axis=0) * valid
+    moments = np.take_along_axis(overlap_moments(src_edges, dst_edges), targets, axis=0) * valid
     targets = np.maximum.accumulate(targets, axis=1)
-    return targets.astype(np.int32), weights
+    return (targets.astype(np.int32), weights,
+            moments if np.max(np.abs(moments), initial=0.0) > 1e-9 else None)
 
 
 def sparse_rebin_operators(src: Grid, dst: Grid):
-    """((ty, wy), (tx, wx)): `sparse_overlap` along y and x, for `rebin_sparse`."""
+    """((ty, wy, my), (tx, wx, mx)): `sparse_overlap` along y and x, for `rebin_sparse`."""
     return (sparse_overlap(src.y_edges(), dst.y_edges()),
             sparse_overlap(src.x_edges(), dst.x_edges()))
 
 
-def _rebin_axis0(image, targets, weights, size):
+def limited_slope(image):
+    """Minmod slope of a flux image along axis 0 (flux per pixel per pixel): the smaller
+    one-sided difference where both have one sign, else 0 (zero beyond the edges). A
+    pixel's linear profile v + g (s − ½) then stays ≥ 0 wherever v ≥ 0."""
+    zero = jnp.zeros_like(image[:1])
+    ahead = jnp.concatenate([image[1:], zero]) - image
+    behind = image - jnp.concatenate([zero, image[:-1]])
+    return jnp.where(ahead * behind > 0,
+                     jnp.sign(ahead) * jnp.minimum(jnp.abs(ahead), jnp.abs(behind)), 0.0)
+
+
+def _rebin_axis0(image, targets, weights, size, moments=None):
+    # with moments, each pixel shares its linear profile, not a flat one (one segment
+    # sum per target slot either way: the slope term rides along)
+    slope = None if moments is None else limited_slope(image)
+    shape = (-1,) + (1,) * (image.ndim - 1)
     out = 0.0
     for t in range(targets.shape[0]):
-        w = weights[t].reshape((-1,) + (1,) * (image.ndim - 1)).astype(image.dtype)
-        out = out + jax.ops.segment_sum(image * w, targets[t], num_segments=size,
+        part = image * weights[t].reshape(shape).astype(image.dtype)
+        if slope is not None:
+            part = part + slope * moments[t].reshape(shape).astype(image.dtype)
+        out = out + jax.ops.segment_sum(part, targets[t], num_segments=size,
                                         indices_are_sorted=True)
     return out
 
 
 def rebin_sparse(image, ops, shape):
     """Flux-conserving rebinning of [ny, nx, ...] images (extra axes are carried along) to
-    `shape` with `sparse_rebin_operators`: cost ∝ pixels, not pixels × output side."""
-    (ty, wy), (tx, wx) = ops
-    img = _rebin_axis0(image, ty, wy, shape[0])                       # [my, nx, ...]
-    img = _rebin_axis0(jnp.swapaxes(img, 0, 1), tx, wx, shape[1])     # [mx, my, ...]
+    `shape` with `sparse_rebin_operators`: cost ∝ pixels, not pixels × output side.
+
+    Where the grids do not nest, a source pixel split between destination pixels shares
+    its flux as a linear (minmod-limited) profile across it, not a flat one: flat
+    sharing is first order in the pixel size (1e-3 of the peak of a lensed host on
+    0.031" pixels over 2.5 mas ones). Flux is conserved either way."""
+    (ty, wy, my), (tx, wx, mx) = ops
+    img = _rebin_axis0(image, ty, wy, shape[0], my)                       # [my, nx, ...]
+    img = _rebin_axis0(jnp.swapaxes(img, 0, 1), tx, wx, shape[1], mx)     # [mx, my, ...]
     return jnp.swapaxes(img, 0, 1)
 
 
