@@ -328,17 +328,19 @@ def test_lensed_clumps_on_caustics_finite(params, key):
 
 
 # a host whose images, at build time, get exact sub-pixel footprints near its centre
-# (model._host_core_layout); hypothesis then moves it anywhere, onto the caustic too
+# (model._host_core_layout); hypothesis then moves it anywhere, onto the caustic too.
+# 0.031" detector pixels over 5 mas lens pixels: the second-order rebinning is used too
 _HOST_TEMPLATE = Source(bulge=Sersic(jnp.array([1.0]), jnp.array(0.005), jnp.array(4.0),
                                      jnp.array(0.8), jnp.array(0.3), jnp.array([0.3, 0.05])))
 HOST_VG = {}
 for _d in DTYPES:
-    _m = build_model(_HOST_TEMPLATE.astype(_d), [Band("b", 0.03, 1000.0, 0.1)],
+    _m = build_model(_HOST_TEMPLATE.astype(_d), [Band("b", 0.031, 1000.0, 0.1)],
                      lens=SIS(jnp.array(1.0), jnp.array([0.0, 0.0])),
                      field_arcsec=((0.9, 1.7), (-0.2, 0.6)), lens_pixel_arcsec=0.005,
                      accuracy=Accuracy(lens_subsampling=1, source_order=2, exact_core=3),
                      dtype=_d)
     assert _m.host_core_index is not None and _m.host_core_index.size > 100
+    assert all(m is not None for _, _, m in _m.rebin_ops[0])
     HOST_VG[_d] = value_and_grad_fn(_m)
 HOST_CENTER = st.one_of(
     st.just((0.3, 0.05)),                                  # where the exact pixels are
