@@ -642,42 +642,33 @@ def markdown(rows, meta):
     return "\n".join(out)
 
 
+# part name → (runner, key of its meta entry; None: the runner's meta is merged)
+PARTS = {"sersic": (run_sersic, "sersic"), "lensed": (run_lensed, None),
+         "caustic": (run_caustic, "caustic"), "deflection": (run_deflection, "deflection"),
+         "host": (run_host, "lensed-host"), "psf": (run_psf, "psf")}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--parts", default="sersic,lensed,caustic,deflection,host,psf")
+    ap.add_argument("--parts", default=",".join(PARTS))
     ap.add_argument("--quick", action="store_true", help="a few settings per part")
     args = ap.parse_args(argv)
     parts = args.parts.split(",")
+    if set(parts) - set(PARTS):
+        ap.error(f"--parts {args.parts}: expected names from {','.join(PARTS)}")
     rows, meta = [], {"machine": C.machine(), "quick": args.quick}
     t0 = time.perf_counter()
-    if "sersic" in parts:
-        r, m = run_sersic(args.quick)
+    for part in parts:
+        run, key = PARTS[part]
+        r, m = run(args.quick)
         rows += r
-        meta["sersic"] = m
-    if "lensed" in parts:
-        r, m = run_lensed(args.quick)
-        rows += r
-        meta.update(m)
-    if "caustic" in parts:
-        r, m = run_caustic(args.quick)
-        rows += r
-        meta["caustic"] = m
-    if "deflection" in parts:
-        r, m = run_deflection(args.quick)
-        rows += r
-        meta["deflection"] = m
-    if "host" in parts:
-        r, m = run_host(args.quick)
-        rows += r
-        meta["lensed-host"] = m
-    if "psf" in parts:
-        r, m = run_psf(args.quick)
-        rows += r
-        meta["psf"] = m
+        if key is None:          # "lensed" holds one meta entry per case
+            meta.update(m)
+        else:
+            meta[key] = m
     meta["total_s"] = time.perf_counter() - t0
     meta["peak_rss_mb"] = C.peak_rss_mb()
-    suffix = ("" if parts == ["sersic", "lensed", "caustic", "deflection", "host", "psf"]
-              else "_" + "_".join(parts))
+    suffix = "" if parts == list(PARTS) else "_" + "_".join(parts)
     C.write_json("accuracy" + suffix, {"meta": meta, "rows": rows})
     C.write_text(f"accuracy{suffix}.md", markdown(rows, meta))
     plot(rows, C.RESULTS / f"accuracy{suffix}.png")

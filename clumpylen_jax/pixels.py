@@ -83,6 +83,16 @@ class Grid:
                     self.nx * factor, self.ny * factor)
 
 
+def _overlaps(src_edges, dst_edges):
+    """(lo, hi [m, n], src_lo, width [1, n]): the overlap [lo, hi] of destination pixel j
+    with source pixel i (empty where hi ≤ lo), and the source pixels' lower edges and widths."""
+    src_edges = np.asarray(src_edges, float)
+    dst_edges = np.asarray(dst_edges, float)
+    lo = np.maximum(dst_edges[:-1, None], src_edges[None, :-1])
+    hi = np.minimum(dst_edges[1:, None], src_edges[None, 1:])
+    return lo, hi, src_edges[None, :-1], np.diff(src_edges)[None, :]
+
+
 def overlap_matrix(src_edges, dst_edges):
     """W[j, i] = fraction of source pixel i that lies in destination pixel j (1-D, numpy).
 
@@ -90,11 +100,7 @@ def overlap_matrix(src_edges, dst_edges):
     source bins outside the destination range is dropped. Exact for any ratio
     of pixel sizes (pixels are treated as uniformly filled).
     """
-    src_edges = np.asarray(src_edges, float)
-    dst_edges = np.asarray(dst_edges, float)
-    lo = np.maximum(dst_edges[:-1, None], src_edges[None, :-1])
-    hi = np.minimum(dst_edges[1:, None], src_edges[None, 1:])
-    width = np.diff(src_edges)[None, :]
+    lo, hi, _, width = _overlaps(src_edges, dst_edges)
     return np.clip(hi - lo, 0.0, None) / width
 
 
@@ -115,13 +121,9 @@ def overlap_moments(src_edges, dst_edges):
     """M[j, i] = ∫ (s − ½) ds over the part of source pixel i in destination pixel j, with
     s ∈ [0, 1] across the source pixel (1-D, numpy): the share of a linear slope's flux
     that the overlap takes. Σ_j M[j, i] = 0 for a pixel inside the destination range."""
-    src_edges = np.asarray(src_edges, float)
-    dst_edges = np.asarray(dst_edges, float)
-    lo = np.maximum(dst_edges[:-1, None], src_edges[None, :-1])
-    hi = np.minimum(dst_edges[1:, None], src_edges[None, 1:])
-    width = np.diff(src_edges)[None, :]
-    s0 = (lo - src_edges[None, :-1]) / width
-    s1 = (hi - src_edges[None, :-1]) / width
+    lo, hi, start, width = _overlaps(src_edges, dst_edges)
+    s0 = (lo - start) / width
+    s1 = (hi - start) / width
     return np.where(hi > lo, 0.5 * (s1 - s0) * (s1 + s0 - 1.0), 0.0)
 
 
