@@ -84,8 +84,17 @@ def theta_to_pixel(theta1_arcsec, theta2_arcsec, crpix, pixel_arcsec):
 
 
 def _read_summary(run_dir: Path) -> dict:
-    with open(run_dir / "summary.json", encoding="utf-8") as fh:
-        return json.load(fh)
+    from .errors import ConfigError
+
+    path = run_dir / "summary.json"
+    try:
+        with open(path, encoding="utf-8") as fh:
+            summary = json.load(fh)
+    except (ValueError, UnicodeDecodeError) as exc:   # JSONDecodeError is a ValueError
+        raise ConfigError(str(path), "<unreadable>", f"the JSON summary `simulate` wrote ({exc})") from exc
+    if not isinstance(summary, dict):
+        raise ConfigError(str(path), type(summary).__name__, "a JSON object (the run's summary)")
+    return summary
 
 
 def _read_catalog(run_dir: Path):
@@ -349,4 +358,6 @@ def analyze_run(run_dir, *, n_apertures=100, aperture_radius_arcsec=None, nsigma
     summary = _read_summary(run_dir)
     summary["analysis"] = analysis
     write_json(run_dir / "summary.json", summary)
+    from .rundir import update_manifest
+    update_manifest(run_dir, "summary.json")   # the run stays whole: its manifest follows
     return analysis

@@ -70,8 +70,13 @@ def _cmd_show(args) -> int:
 def _cmd_validate(args) -> int:
     from . import scene as sc
 
+    from .preflight import preflight
+
     s = _load(args.scene)
+    notes = preflight(s)   # the files and sizes `simulate` would refuse
     print(f"# scene '{s.name}' is valid" + (f" ({s.path})" if s.path else ""))
+    for note in notes:
+        print(f"# warning: {note}")
     if s.description:
         print(f"# {s.description}")
     print("# stages: " + ", ".join(sc.stages(s)))
@@ -95,13 +100,15 @@ def _cmd_simulate(args) -> int:
     s = _load(args.scene)
     bands = _parse_bands(args.bands)
     noise = False if args.no_noise else None
-    if args.seed is not None and args.seed < 0:
-        raise ConfigError("--seed", args.seed, "an integer >= 0")
-    # Check the overrides against the scene before any computation.
-    sc.with_overrides(s, seed=args.seed, bands=bands, noise=noise)
-    out = os.path.abspath(args.out)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise ConfigError("--out", args.out, "a directory (this path is a file)")
+    # Check the overrides, the output directory, the files and the memory the scene
+    # needs before any computation.
+    resolved = sc.with_overrides(s, seed=args.seed, bands=bands, noise=noise)
+    from .preflight import preflight
+    from .rundir import check_target
+
+    out = os.fspath(check_target(args.out, "--out"))
+    for note in preflight(resolved):
+        print(f"clumpylen: warning: {note}", file=sys.stderr)
     try:
         from .pipeline import simulate
     except ImportError as exc:
@@ -192,8 +199,12 @@ def _print_summary(summary, out: str) -> None:
 
 
 def _existing_dir(path: str) -> str:
+    """A complete run directory (its manifest checked), else a user error."""
+    from .rundir import check_run
+
     if not os.path.isdir(path):
         raise FileNotFoundError(f"run directory not found: {path}")
+    check_run(path, "DIR")
     return path
 
 
@@ -318,6 +329,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("clumpylen: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        # a read-only or full disk, a path under a file...: the path and the reason
+        from .rundir import describe_oserror
+
+        print(f"clumpylen: error: {describe_oserror(exc)}", file=sys.stderr)
+        return EXIT_USAGE
 
 
 if __name__ == "__main__":  # pragma: no cover

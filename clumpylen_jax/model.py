@@ -544,6 +544,8 @@ class SceneModel(eqx.Module):
     def clump_magnifications(self, source: Source):
         """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
         cl = source.clumps
+        if self.accuracy.source_mode == "analytic" and self.beta1 is not None:
+            return self._analytic_magnifications(cl)
         out = jnp.zeros(cl.count, cl.re_arcsec.dtype)
         if self._has_linearised(source):
             # a linearised clump: Σ |μ| over its images (each wholly inside the field)
@@ -562,6 +564,21 @@ class SceneModel(eqx.Module):
             mags = jnp.sum(stamps * mu[at], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
             out = out.at[idx].set(mags)
         return out
+
+    def _analytic_magnifications(self, cl):
+        """Magnification [N] as the analytic path renders each clump: its unit-flux light
+        summed over every ray (one clump at a time: the memory of one clump's rays)."""
+        b = profiles.sersic_b(cl.n)
+        area = self.hr_grid.pixel_arcsec**2
+
+        def one(k):
+            val = render.sersic_unit_brightness(
+                self.beta1, self.beta2, re_arcsec=cl.re_arcsec[k], n=cl.n[k], q=cl.q[k],
+                pa_rad=cl.pa_rad[k], center1=cl.center_arcsec[k, 0],
+                center2=cl.center_arcsec[k, 1], b=b[k])
+            return jnp.sum(val @ self.ray_weights) * area
+
+        return jax.lax.map(one, jnp.arange(cl.count))
 
     def lens_plane(self, source: Source):
         """High-resolution lens-plane images [B, ny, nx], counts/s per lens-plane pixel."""
@@ -701,10 +718,12 @@ class SceneModel(eqx.Module):
     def observe(self, source: Source, key):
         """(noisy images, noiseless images, variances), one of each per band."""
         clean = self.noiseless(source)
+        # each band's key from its filter name, not its position: a band's noise is the
+        # same whichever other bands are simulated with it (--bands)
         noisy = tuple(
-            noise.add_photon_noise(jax.random.fold_in(key, k), img, lay.exptime_s,
-                                   self.accuracy.gaussian_noise_above)
-            for k, (img, lay) in enumerate(zip(clean, self.layouts)))
+            noise.add_photon_noise(jax.random.fold_in(key, noise.band_key(lay.name)), img,
+                                   lay.exptime_s, self.accuracy.gaussian_noise_above)
+            for img, lay in zip(clean, self.layouts))
         return noisy, clean, self.variances(clean)
 
 

@@ -2,8 +2,18 @@
 
 from __future__ import annotations
 
+import zlib
+
 import jax
 import jax.numpy as jnp
+
+
+def band_key(filter_name: str) -> int:
+    """A stable 31-bit integer of a band's filter name, folded into the scene's noise key.
+
+    CRC-32 of the upper-case name (not Python's hash(), which changes between processes).
+    """
+    return zlib.crc32(str(filter_name).upper().encode("utf-8")) & 0x7FFFFFFF
 
 
 def variance_map(expected_counts_per_s, exptime_s):

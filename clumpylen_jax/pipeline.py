@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
-from . import render, scene as scene_mod
+from . import render, rundir, scene as scene_mod
 from .errors import ConfigError
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
 
@@ -152,7 +152,8 @@ def _host_pytrees(scene, dtype):
         if d.texture is not None:
             t = d.texture
             tex = Texture(_f(t.amplitude, dtype), _f(t.scale_arcsec, dtype), int(t.octaves),
-                          jnp.asarray(scene.seed, jnp.uint32))
+                          # seeds up to 2**63: fold to 32 bits (those below 2**32 unchanged)
+                          jnp.asarray((scene.seed ^ (scene.seed >> 32)) & 0xFFFFFFFF, jnp.uint32))
         disk = Disk(Sersic(_f([1.0], dtype), _f(d.re_arcsec, dtype), _f(d.n, dtype),
                            _f(d.q, dtype), _f(d.pa_rad, dtype), c),
                     _f(d.inclination_rad, dtype), arms, tex)
@@ -285,7 +286,8 @@ def _bands(scene, accuracy):
                            detector_pixel_arcsec=b.pixel_arcsec,
                            psf_pixel_arcsec=b.psf_pixel_arcsec,
                            oversampling=max(accuracy.psf_oversampling, 2) * 2 - 1,
-                           base_dir=scene.base_dir)
+                           base_dir=scene.base_dir, setting=f"bands[{i}].psf",
+                           grid_oversampling=accuracy.psf_oversampling)
         out.append(model_mod.Band(
             b.filter, float(b.pixel_arcsec), float(b.exptime_s or 1.0), float(b.sky_counts_per_s),
             None if psf is None else psf.array, None if psf is None else psf.pixel_arcsec,
@@ -350,6 +352,9 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
     with progress.stage("lens"):
         lens = build_lens(scene, cosmology)
         field = _field(scene, lens, source, accuracy)
+        # the field is known now: refuse a scene too big for memory before tracing it
+        from .preflight import check_memory
+        check_memory(scene, field_arcsec=field, n_clumps=0 if table is None else len(table))
     with progress.stage("model (ray tracing)" if lens is not None else "model"):
         model = model_mod.build_model(
             source, bands, lens=lens, field_arcsec=field,
@@ -404,8 +409,20 @@ def _rgb_channels(images, grids, triple):
 def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True) -> dict:
     """Simulate `scene` (a Scene, a built-in name or a path) and write SCENE.md's outputs in out_dir.
 
+    The run is written aside and swapped into out_dir whole, with a manifest.json
+    (`rundir.run_directory`): no file of an earlier or interrupted run is left beside it.
     Returns the summary (also written to summary.json).
     """
+    with rundir.run_directory(out_dir) as run:
+        summary = _simulate_into(scene, run.path, bands=bands, seed=seed, noise=noise,
+                                 progress=progress)
+        run.meta.update(seed=summary["seed"], scene=summary["scene"]["scene"]["name"],
+                        version=__version__)
+    return summary
+
+
+def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True) -> dict:
+    """`simulate` into a directory of its own (the run directory's temporary sibling)."""
     if not isinstance(scene, scene_mod.Scene):
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
@@ -486,10 +503,12 @@ def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True
     with prog.stage("catalogue"):
         table = prep.catalog
         if table is not None:
-            if len(table) and lensed and model.clump_grid is not None:
+            if len(table) and lensed:   # every source_mode (linearised clumps too)
                 table["magnification"] = np.asarray(_jit_call(model, 'clump_magnifications', source))
             else:
                 table["magnification"] = np.full(len(table), 1.0 if not lensed else np.nan)
+            from .preflight import smear_flags
+            table["flag"] = smear_flags(model, table, scene.render.source_pixel_arcsec)
             io.write_catalog(out / "catalog.ecsv", table)
 
     summary = {

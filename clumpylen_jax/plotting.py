@@ -216,6 +216,17 @@ def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None
 # ------------------------------------------------------------------ the run
 
 
+def _rows_with(catalog, *columns):
+    """The catalogue rows whose `columns` are all finite and > 0 (none without a catalogue)."""
+    if catalog is None or not all(c in catalog.colnames for c in columns):
+        return []
+    ok = np.ones(len(catalog), bool)
+    for c in columns:
+        v = np.asarray(catalog[c], float)
+        ok &= np.isfinite(v) & (v > 0)
+    return catalog[ok]
+
+
 def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     """Make every figure the run supports; returns the PNG paths (in out_dir, default RUN/plots)."""
     from .analysis import _lens_from_summary, _read_catalog, band_data
@@ -228,10 +239,13 @@ def plot_run(run_dir, *, out_dir=None) -> list[Path]:
         summary = json.load(fh)
     catalog = _read_catalog(run_dir)
     written = []
-    if catalog is not None and len(catalog):
-        written.append(plot_mass_function(catalog, out / "clump_mass_function.png"))
-        written.append(plot_size_mass(catalog, out / "clump_size_mass.png"))
-        written.append(plot_ages(catalog, out / "clump_ages.png"))
+    # clumps given by magnitudes have no mass (NaN): those figures show the clumps that have one
+    if len(with_mass := _rows_with(catalog, "mass_msun")):
+        written.append(plot_mass_function(with_mass, out / "clump_mass_function.png"))
+    if len(rows := _rows_with(catalog, "mass_msun", "re_pc")):
+        written.append(plot_size_mass(rows, out / "clump_size_mass.png"))
+    if len(rows := _rows_with(catalog, "mass_msun", "age_myr")):
+        written.append(plot_ages(rows, out / "clump_ages.png"))
     bands = [band_data(p) for p in sorted((run_dir / "bands").glob("*.fits"))]
     # Bands in the scene's order (blue to red as the user listed them), not alphabetical.
     order = list((summary.get("bands") or {}).keys())

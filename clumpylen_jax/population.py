@@ -769,8 +769,13 @@ def read_clump_catalog(
         out["id"] = np.arange(n, dtype=np.int64)
 
     result = _make_table(out, {"source_file": str(path)})
+    from .scene import AB_MAG_RANGE
+    lo, hi = AB_MAG_RANGE
     for name in mag_cols:
-        result[name] = col(name)
+        m = col(name)
+        ok = (m >= lo) & (m <= hi)
+        require(np.all(ok), f"{setting}:{name}", _first_bad(m, ok), f"AB magnitudes in [{lo:g}, {hi:g}]")
+        result[name] = m
         result[name].unit = u.mag  # AB
     return result
 

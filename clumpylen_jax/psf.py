@@ -69,6 +69,7 @@ class PSF:
     effective: bool
     source: str = ""
     detector_pixel_arcsec: float | None = None
+    scale_key: str = ""             # where pixel_arcsec came from (a header keyword), if known
 
     def __post_init__(self):
         arr = np.array(self.array, dtype=np.float64)  # a private copy
@@ -123,6 +124,12 @@ _PIXEL_SCALE_KEYS = ("PIXELSCL", "PIXSCALE", "PIXSCAL", "PIXELSCALE", "PIXSIZE",
 
 def _header_pixel_arcsec(header) -> float | None:
     """Pixel scale in arcsec from the usual keywords, or None."""
+    found = _header_pixel_scale(header)
+    return None if found is None else found[0]
+
+
+def _header_pixel_scale(header) -> tuple[float, str] | None:
+    """(pixel scale in arcsec, the keyword it came from), or None."""
     for key in _PIXEL_SCALE_KEYS:
         if key in header:
             try:
@@ -130,7 +137,7 @@ def _header_pixel_arcsec(header) -> float | None:
             except (TypeError, ValueError):
                 continue
             if math.isfinite(value) and value > 0:
-                return value
+                return value, key
     # WCS: CDELT or CD in degrees (the FITS default unit for celestial axes).
     for key in ("CDELT1", "CD1_1"):
         if key in header:
@@ -141,7 +148,7 @@ def _header_pixel_arcsec(header) -> float | None:
             unit = str(header.get("CUNIT1", "deg")).strip().lower()
             factor = {"deg": 3600.0, "arcmin": 60.0, "arcsec": 1.0, "mas": 1e-3}.get(unit)
             if factor and value > 0:
-                return value * factor
+                return value * factor, key
     return None
 
 
@@ -223,22 +230,39 @@ def load_psf_fits(
             hdul_ctx = fits.open(path, ignore_missing_end=True, memmap=False)
         except Exception as exc:  # astropy raises OSError and others for non-FITS
             raise ConfigError("psf", str(path), f"a readable FITS file ({exc})") from exc
-        with hdul_ctx as hdul:
-            if hdu is None:
-                index = _first_image_hdu(hdul)
-            else:
-                try:
-                    index = hdul.index_of(hdu)
-                    hdul[index]
-                except (KeyError, IndexError) as exc:
-                    raise ConfigError("psf_hdu", hdu, f"an HDU of {path.name} (it has {len(hdul)})") from exc
-            header = hdul[index].header
-            data = hdul[index].data
-            require(data is not None, "psf", f"{path.name}[{index}] without data", "an image HDU")
-            data = np.asarray(data, dtype=np.float64)
-            primary = hdul[0].header
+        try:
+            image_hdu = _read_image_hdu(hdul_ctx, hdu, path)
+        except ConfigError:
+            raise
+        except Exception as exc:  # truncated or corrupt data: astropy raises OSError, ValueError...
+            raise ConfigError("psf", str(path), f"a complete, readable FITS file ({exc})") from exc
+    index, header, data, primary = image_hdu
+    return _finish_load(path, index, header, data, primary, pixel_arcsec, effective,
+                        detector_pixel_arcsec, detector_xy, recenter)
 
+
+def _read_image_hdu(hdul_ctx, hdu, path: Path):
+    """(index, header, data as float64, primary header) of the PSF's HDU."""
+    with hdul_ctx as hdul:
+        if hdu is None:
+            index = _first_image_hdu(hdul)
+        else:
+            try:
+                index = hdul.index_of(hdu)
+                hdul[index]
+            except (KeyError, IndexError) as exc:
+                raise ConfigError("psf_hdu", hdu, f"an HDU of {path.name} (it has {len(hdul)})") from exc
+        header = hdul[index].header
+        data = hdul[index].data
+        require(data is not None, "psf", f"{path.name}[{index}] without data", "an image HDU")
+        return index, header, np.asarray(data, dtype=np.float64), hdul[0].header
+
+
+def _finish_load(path, index, header, data, primary, pixel_arcsec, effective, detector_pixel_arcsec,
+                 detector_xy, recenter) -> PSF:
+    """The PSF record of an HDU's data: layout, pixel scale and its origin (see load_psf_fits)."""
     source = f"{path.name}[{index}]"
+    scale_key = "" if pixel_arcsec is None else "psf_pixel_arcsec"
     if _is_stdpsf(header, data):
         image, (x, y) = _stdpsf_select(header, data, detector_xy)
         source += f" STDPSF at detector (x, y) = ({x:.0f}, {y:.0f})"
@@ -246,15 +270,17 @@ def load_psf_fits(
             detector_pixel_arcsec = _stdpsf_detector_pixel(path.name)
         if pixel_arcsec is None and detector_pixel_arcsec is not None:
             pixel_arcsec = detector_pixel_arcsec / _STDPSF_OVERSAMPLING
+            scale_key = "the STDPSF detector pixel / 4"
         if effective is None:
             effective = True
     else:
         require(data.ndim == 2, "psf", f"{source} with shape {data.shape}", "a 2-D PSF image")
         image = data
-        header_scale = _header_pixel_arcsec(header) or (_header_pixel_arcsec(primary) if index else None)
+        found = _header_pixel_scale(header) or (_header_pixel_scale(primary) if index else None)
+        header_scale = None if found is None else found[0]
         oversamp = _int_or_none(header.get("OVERSAMP"))
-        if pixel_arcsec is None:
-            pixel_arcsec = header_scale
+        if pixel_arcsec is None and found is not None:
+            pixel_arcsec, scale_key = found
         if detector_pixel_arcsec is None and header_scale is not None and oversamp:
             detector_pixel_arcsec = header_scale * oversamp
         if effective is None:
@@ -275,6 +301,7 @@ def load_psf_fits(
         effective=effective,
         source=source,
         detector_pixel_arcsec=detector_pixel_arcsec,
+        scale_key=scale_key,
     )
 
 
@@ -678,13 +705,17 @@ def psf_for_band(
     oversampling: int = 4,
     base_dir=None,
     cache_dir=None,
+    setting: str = "psf",
+    grid_oversampling: int | None = None,
 ) -> PSF | None:
     """Resolve a band's ``psf`` setting (SCENE.md): "none", "diffraction" or a path.
 
     "none" (or None) → None; "diffraction" → ``diffraction_psf`` at
     detector_pixel / oversampling; otherwise a FITS file (relative paths from
     ``base_dir``) read with ``load_psf_fits``, ``psf_pixel_arcsec`` overriding
-    or supplying its pixel scale.
+    or supplying its pixel scale. setting: the scene key errors name (``bands[i].psf``).
+    grid_oversampling: the factor of the grid the PSF will act on (detector pixel /
+    factor): with it, a file's PSF is checked by ``check_psf_for_band``.
     """
     if spec is None or (isinstance(spec, str) and spec.strip().lower() == "none"):
         return None
@@ -696,4 +727,40 @@ def psf_for_band(
     path = Path(spec)
     if not path.is_absolute() and base_dir is not None:
         path = Path(base_dir) / path
-    return load_psf_fits(path, pixel_arcsec=psf_pixel_arcsec)
+    band = setting.rpartition(".")[0]
+    try:
+        psf = load_psf_fits(path, pixel_arcsec=psf_pixel_arcsec)
+    except ConfigError as exc:   # name the scene key: bands[i].psf, bands[i].psf_pixel_arcsec
+        key = f"{band}.{exc.setting}" if band and exc.setting.startswith("psf") else exc.setting
+        raise ConfigError(key, exc.value, exc.expected) from exc
+    if grid_oversampling is not None:
+        check_psf_for_band(psf, detector_pixel_arcsec=detector_pixel_arcsec,
+                           grid_pixel_arcsec=detector_pixel_arcsec / grid_oversampling,
+                           setting=setting)
+    return psf
+
+
+# A PSF sampled coarser than this many detector pixels is not the band's PSF: most often a
+# pixel scale in mas read as arcsec (PIXELSCL = 10 for 10 mas), which would resample a 31²
+# file onto a 30 000² kernel
+PSF_MAX_PIXEL_RATIO = 2.0
+# The largest kernel side (pixels of the grid the PSF acts on): 8191² float64 is 0.5 GB
+PSF_MAX_KERNEL_SIDE = 8191
+
+
+def check_psf_for_band(psf: PSF, *, detector_pixel_arcsec: float, grid_pixel_arcsec: float,
+                       setting: str = "psf") -> None:
+    """Refuse, before any array is made, a PSF whose pixel scale cannot be this band's, or
+    whose kernel on the grid of `grid_pixel_arcsec` would be larger than PSF_MAX_KERNEL_SIDE."""
+    band = setting.rpartition(".")[0]
+    key = psf.scale_key or "its pixel scale"
+    where = f"{psf.source}: {key} = {psf.pixel_arcsec:g} arcsec"
+    hint = (f"; a scale in mas read as arcsec? set {band}.psf_pixel_arcsec" if band else "")
+    if psf.pixel_arcsec > PSF_MAX_PIXEL_RATIO * detector_pixel_arcsec:
+        raise ConfigError(setting, where, f"a PSF sampled at or below {PSF_MAX_PIXEL_RATIO:g} "
+                          f"detector pixels ({detector_pixel_arcsec:g}\"){hint}")
+    side = math.ceil(max(psf.shape) * psf.pixel_arcsec / grid_pixel_arcsec - 1e-9)
+    if side > PSF_MAX_KERNEL_SIDE:
+        raise ConfigError(setting, f"{where}, {max(psf.shape)} pixels: a kernel of {side} pixels "
+                          f"of {grid_pixel_arcsec:g}\"", f"a PSF at most {PSF_MAX_KERNEL_SIDE} "
+                          f"pixels of {grid_pixel_arcsec:g}\" wide (crop the file){hint}")

@@ -97,6 +97,12 @@ KNOWN_FILTERS = {
 
 LENS_MODELS = ("macs0416-like", "a2744-like")
 
+# Seeds: numpy's generators take any int >= 0, jax.random.key a signed 64-bit one.
+SEED_MAX = 2**63 - 1
+# AB magnitudes a scene or catalogue may give (99: the usual "no flux" sentinel); beyond
+# them fluxes overflow float32 (m < ZP - 96) or are nonsense for a galaxy
+AB_MAG_RANGE = (0.0, 99.0)
+
 SIZE_RELATIONS = ("brown-gnedin-2021",)
 
 SFH_KINDS = ("constant", "burst")
@@ -615,7 +621,9 @@ def _sersic_fields(t: dict, p: str, *, n_default: float, age_default: float, ban
                 raise ConfigError(_join(mp, k), v, "a magnitude for one of the bands ("
                                   + ", ".join(band_names) + ")"
                                   + (f"; did you mean '{near[0]}'?" if near else ""))
-            mags[name] = _float(mt, k, mp, expected="an AB magnitude (a number)")
+            lo, hi = AB_MAG_RANGE
+            mags[name] = _float(mt, k, mp, lo=lo, hi=hi,
+                                expected=f"an AB magnitude in [{lo:g}, {hi:g}]")
     mass = _float(t, "mass_msun", p, None, lo=0)
     if mass is None:
         missing = [b for b in band_names if b not in mags]
@@ -715,8 +723,8 @@ def _clumps(t, p, source_tables: dict, base_dir, band_names) -> Clumps:
         ages = AgeDistribution(_float(g, "slope", gp, -0.5),
                                _float(g, "min_myr", gp, 1.0, lo=0, lo_open=True),
                                _float(g, "max_myr", gp, 500.0, lo=0, lo_open=True))
-        if not ages.min_myr <= ages.max_myr:
-            raise ConfigError(_join(gp, "max_myr"), ages.max_myr, f">= min_myr = {ages.min_myr}")
+        if not ages.min_myr < ages.max_myr:   # the age power law needs a range
+            raise ConfigError(_join(gp, "max_myr"), ages.max_myr, f"> min_myr = {ages.min_myr}")
     q_range = _pair(t, "q_range", p, (0.3, 1.0))
     if not 0 < q_range[0] <= q_range[1] <= 1:
         raise ConfigError(_join(p, "q_range"), list(q_range), "[q_min, q_max] with 0 < q_min <= q_max <= 1")
@@ -748,19 +756,12 @@ def _check_catalog(path: str, setting: str, band_names) -> None:
     Flux per band: a mag_<FILTER> column, or mass_msun + age_myr for SPS.
     Other columns pass through untouched.
     """
-    from astropy.table import Table  # lazy: astropy is slow to import
+    # the reader `simulate` uses, so that `validate` refuses what it would (missing q, CSV,
+    # NaN, magnitudes out of range); arcsec_per_pc = 1 stands in for the cosmology here,
+    # which only converts re_pc
+    from .population import read_clump_catalog  # lazy: astropy is slow to import
 
-    try:
-        cols = set(Table.read(path).colnames)
-    except Exception as exc:  # unreadable: report as a user error, not a traceback
-        raise ConfigError(setting, path, f"a readable table (ECSV, FITS, CSV): {exc}") from exc
-    need = [c for c in ("beta1_arcsec", "beta2_arcsec") if c not in cols]
-    if "re_arcsec" not in cols and "re_pc" not in cols:
-        need.append("re_arcsec or re_pc")
-    sps = {"mass_msun", "age_myr"} <= cols
-    need += [f"mag_{b} (or mass_msun and age_myr)" for b in band_names if f"mag_{b}" not in cols and not sps]
-    if need:
-        raise ConfigError(setting, path, "a catalogue with columns " + ", ".join(need))
+    read_clump_catalog(path, arcsec_per_pc=1.0, bands=list(band_names), setting=setting)
 
 
 _SOURCE_KEYS = ("center_arcsec", "bulge", "disk", "clumps")
@@ -1046,7 +1047,7 @@ def scene_from_dict(d: dict, base_dir: str | os.PathLike | None = None, *, path:
         name = os.path.splitext(os.path.basename(path))[0] if path else "scene"
     return Scene(
         name=name, description=_str(s, "description", "scene", ""),
-        seed=_int(s, "seed", "scene", 0, lo=0), z_source=z_source, cosmology=cosmo,
+        seed=_int(s, "seed", "scene", 0, lo=0, hi=SEED_MAX), z_source=z_source, cosmology=cosmo,
         source=source, lens=lens, render=render, bands=bands, output=output,
         path=path, base_dir=base_dir,
     )
@@ -1081,6 +1082,18 @@ def _unknown_scene(name: str) -> ConfigError:
     return ConfigError("scene", name, exp)
 
 
+def _scene_text(data: bytes, name: str) -> str:
+    """A scene file's bytes as text: UTF-8 (TOML's encoding), with a leading BOM dropped."""
+    if data.startswith(b"\xef\xbb\xbf"):   # editors on Windows write one; TOML has none
+        data = data[3:]
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise ConfigError("scene file", name, f"UTF-8 text (byte 0x{data[exc.start]:02x} on line "
+                          f"{line} is not UTF-8: save the file as UTF-8)") from exc
+
+
 def load_scene(name_or_path: str | os.PathLike) -> Scene:
     """Load a scene: an existing file path, else a built-in scene name.
 
@@ -1093,7 +1106,7 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     if os.path.isfile(arg):
         path = os.path.abspath(arg)
         with open(path, "rb") as fh:
-            d = tomllib.load(fh)
+            d = tomllib.loads(_scene_text(fh.read(), arg))
         return scene_from_dict(d, base_dir=os.path.dirname(path), path=path)
     looks_like_path = os.sep in arg or "/" in arg or arg.endswith(".toml")
     if arg in _builtin_names():
@@ -1331,8 +1344,8 @@ def with_overrides(scene: Scene, *, seed: int | None = None, bands=None, noise: 
     composites that need a dropped band are dropped.
     """
     if seed is not None:
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError("--seed", seed, "an integer >= 0")
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= SEED_MAX:
+            raise ConfigError("--seed", seed, f"an integer in [0, 2**63 - 1 = {SEED_MAX}]")
         scene = dataclasses.replace(scene, seed=seed)
     if noise is not None:
         if noise and any(b.exptime_s is None for b in scene.bands):

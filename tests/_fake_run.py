@@ -13,7 +13,7 @@ import textwrap
 import numpy as np
 from astropy.table import Table
 
-from clumpylen_jax import io
+from clumpylen_jax import io, rundir
 from clumpylen_jax import scene as sc
 
 PIXEL = 0.03
@@ -111,4 +111,5 @@ def make_fake_run(root, *, lensed=False, exptime_s=1000.0, seed=0, clumps=None, 
     io.write_json(root / "summary.json", {"scene": sc.resolved_dict(scene), "bands": bands,
                                           "field_arcsec": [[-HALF, HALF], [-HALF, HALF]],
                                           "timings_s": {"total": 0.0}})
+    rundir.write_manifest(root, {"seed": seed, "scene": "fake"})   # as simulate does
     return root

@@ -160,6 +160,8 @@ def test_simulate_rejects_unknown_band_before_running(capsys, tmp_path, fake_mod
 
 
 def test_plot_and_analyze(capsys, tmp_path, fake_modules):
+    from clumpylen_jax.rundir import write_manifest
+    write_manifest(tmp_path)   # a (tiny) complete run: plot and analyze check the manifest
     assert run(capsys, "plot", str(tmp_path))[0] == 0 and fake_modules["plot"] == str(tmp_path)
     assert run(capsys, "analyze", str(tmp_path), "--snr-threshold", "3")[0] == 0
     assert fake_modules["analyze"] == (str(tmp_path), {"snr_threshold": 3.0})

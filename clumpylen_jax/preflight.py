@@ -1,0 +1,233 @@
+"""Checks of a scene that read its files or add up its sizes: run by `validate` and, before
+any computation, by `simulate`, so that both refuse the same scenes.
+
+`scene.load_scene` checks every key by itself; what needs more than the key is here:
+
+- `check_files`: every PSF file read as `simulate` reads it (truncated, NaN, a pixel scale
+  that cannot be the band's), the deflection maps (readable, same grid), the clump
+  population settings through the sampler's own validation;
+- `memory_estimate` / `check_memory`: the memory a run needs, added up from the scene's
+  grids (detector sub-grids and their FFTs, the lens-plane grid, clumps), refused when
+  above the machine's memory, naming the knob that dominates;
+- `warnings`: scenes that run but lose accuracy silently (clumps far below the
+  source-plane pixel in a lensed scene).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from .errors import ConfigError
+
+# Bytes per pixel or per clump of each part of a run, at float64 (fitted from measured peak
+# memory of three scenes, benchmarks/README.md "Memory refusal"); float32 halves the images.
+_BYTES_HR_BUILD = 64          # per lens-plane pixel: traced corners, masks, footprints (float64)
+_BYTES_HR_IMAGE = 8           # per lens-plane pixel and image held (hosts, HR output bands)
+_BYTES_SUBGRID = 8 * 12       # per detector sub-pixel and band: image, padded FFTs, temporaries
+_BYTES_CLUMP = 4096           # per clump: catalogue, photometry, stamps (+ per band below)
+_BYTES_CLUMP_BAND = 256
+_BASE_BYTES = 1.0 * 2**30     # the JAX runtime and compiled code
+ENV_LIMIT = "CLUMPYLEN_MEMORY_LIMIT_GB"
+
+
+def _sub_factor(scene, band) -> int:
+    return scene.render.accuracy.psf_oversampling if band.psf != "none" else 1
+
+
+def _unlensed_half_width(scene) -> float:
+    """Half-width (arcsec) of an unlensed scene's detector field about the source centre."""
+    from .model import _radius_enclosing
+
+    src = scene.source
+    frac = scene.render.accuracy.source_flux_fraction
+    r = 0.0
+    for comp in (src.bulge, src.disk):
+        if comp is not None:
+            r = max(r, float(_radius_enclosing(frac, comp.re_arcsec, comp.n)))
+    if src.clumps is not None and src.clumps.catalog is not None:
+        from astropy.table import Table
+        t = Table.read(src.clumps.catalog)
+        c = np.asarray(src.center_arcsec, float)
+        d = np.hypot(np.asarray(t["beta1_arcsec"], float) - c[0],
+                     np.asarray(t["beta2_arcsec"], float) - c[1])
+        r = max(r, float(d.max()) if d.size else 0.0)
+    return r + 3.0   # a PSF's reach
+
+
+def expected_clump_count(scene) -> int:
+    """Clumps the scene will have: catalogue rows, or the sampler's mass budget / mean mass."""
+    cl = scene.source.clumps
+    if cl is None:
+        return 0
+    if cl.catalog is not None:
+        from astropy.table import Table
+        return len(Table.read(cl.catalog))
+    host = scene.source.disk if cl.host == "disk" else scene.source.bulge
+    if host is None or host.mass_msun is None:
+        return 0
+    c = cl.cmf
+    lm = np.linspace(math.log(c.m_min_msun), math.log(c.m_max_msun), 4001)
+    m = np.exp(lm)
+    pdf = m ** (c.slope + 1) * np.exp(-c.delta * (m / c.m_cut_msun) ** c.gamma)  # per ln M
+    mean = float(np.trapezoid(pdf * m, lm) / np.trapezoid(pdf, lm))
+    return int(math.ceil(cl.mass_fraction * host.mass_msun / mean))
+
+
+def _field(scene, field_arcsec):
+    if field_arcsec is not None:
+        return field_arcsec
+    f = scene.render.field_arcsec
+    return None if f is None else (tuple(f.x), tuple(f.y))
+
+
+def memory_estimate(scene, *, field_arcsec=None, n_clumps=None) -> dict:
+    """Peak memory (bytes) a run of `scene` needs, by part: {"total", "parts": {name: (bytes, knob)}}.
+
+    field_arcsec: the lens-plane field when known (lensed scenes without
+    render.field_arcsec find theirs after the population: without it the lens plane is
+    left out). n_clumps: the clumps, when known (else `expected_clump_count`).
+    """
+    field = _field(scene, field_arcsec)
+    d = 4 if scene.render.dtype == "float32" else 8
+    nb = len(scene.bands)
+    parts = {}
+    sub = 0.0
+    for b in scene.bands:
+        if field is not None:
+            w, h = field[0][1] - field[0][0], field[1][1] - field[1][0]
+        else:
+            w = h = 2 * _unlensed_half_width(scene)
+        s = _sub_factor(scene, b)
+        sub += math.ceil(w / b.pixel_arcsec) * math.ceil(h / b.pixel_arcsec) * s * s
+    parts["detector sub-grids"] = (sub * _BYTES_SUBGRID * d / 8,
+                                   "render.field_arcsec, or render.accuracy.psf_oversampling")
+    if scene.lens is not None and field is not None:
+        w, h = field[0][1] - field[0][0], field[1][1] - field[1][0]
+        hr = math.ceil(w / scene.render.lens_pixel_arcsec) * math.ceil(h / scene.render.lens_pixel_arcsec)
+        n_comp = (scene.source.bulge is not None) + (scene.source.disk is not None)
+        held = n_comp + (nb if scene.output.hr else 0)
+        parts["lens-plane grid"] = (hr * (_BYTES_HR_BUILD + _BYTES_HR_IMAGE * d / 8 * held),
+                                    "render.field_arcsec or render.lens_pixel_arcsec")
+    n = expected_clump_count(scene) if n_clumps is None else int(n_clumps)
+    if n:
+        parts["clumps"] = (n * (_BYTES_CLUMP + _BYTES_CLUMP_BAND * nb),
+                           "the number of clumps (source.clumps.mass_fraction, cmf.m_min_msun "
+                           "or the catalogue)")
+    total = _BASE_BYTES + sum(v for v, _ in parts.values())
+    return {"total": total, "parts": parts}
+
+
+def memory_limit_bytes() -> float:
+    """The machine's physical memory, or $CLUMPYLEN_MEMORY_LIMIT_GB."""
+    env = os.environ.get(ENV_LIMIT)
+    if env:
+        try:
+            value = float(env)
+        except ValueError:
+            raise ConfigError(ENV_LIMIT, env, "a memory limit in GB (a number)") from None
+        if not value > 0:
+            raise ConfigError(ENV_LIMIT, env, "a memory limit in GB > 0")
+        return value * 2**30
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return math.inf
+
+
+def check_memory(scene, *, field_arcsec=None, n_clumps=None) -> dict:
+    """Refuse (ConfigError naming the knob) a scene whose estimate exceeds the memory limit."""
+    est = memory_estimate(scene, field_arcsec=field_arcsec, n_clumps=n_clumps)
+    limit = memory_limit_bytes()
+    if est["total"] > limit:
+        name, (size, knob) = max(est["parts"].items(), key=lambda kv: kv[1][0])
+        gib = 2.0**30
+        raise ConfigError(knob.split(",")[0].split(" or ")[0], f"a run needing ~{est['total'] / gib:.3g} GiB "
+                          f"({name}: {size / gib:.3g} GiB)",
+                          f"a scene that fits in {limit / gib:.3g} GiB of memory: shrink {knob} "
+                          f"(limit: ${ENV_LIMIT})")
+    return est
+
+
+def check_files(scene) -> None:
+    """Read what `simulate` will read (PSF files, deflection maps, population settings) and
+    refuse what it would refuse, naming the scene key."""
+    from .psf import psf_for_band
+
+    for i, b in enumerate(scene.bands):
+        if b.pixel_arcsec is None or b.zeropoint_ab is None:
+            raise ConfigError(f"bands[{i}]", b.filter, "a band with pixel_arcsec and zeropoint_ab")
+        if b.psf not in ("none", "diffraction"):
+            psf_for_band(b.psf, instrument=b.instrument, filter_name=b.filter,
+                         detector_pixel_arcsec=b.pixel_arcsec, psf_pixel_arcsec=b.psf_pixel_arcsec,
+                         base_dir=scene.base_dir, setting=f"bands[{i}].psf",
+                         grid_oversampling=scene.render.accuracy.psf_oversampling)
+    cl = scene.source.clumps
+    if cl is not None and cl.catalog is None:
+        from .population import clump_config_from_scene
+        clump_config_from_scene(dataclasses.asdict(cl))
+    lens = scene.lens
+    if lens is not None and lens.deflection is not None:
+        from .lensing.fits import load_deflection_maps
+        try:
+            load_deflection_maps(lens.deflection.x, lens.deflection.y,
+                                 lens_center_radec_deg=lens.center_radec_deg, z_lens=lens.z_lens,
+                                 z_source=scene.z_source)
+        except ConfigError as exc:
+            raise ConfigError(f"lens.deflection ({exc.setting})", exc.value, exc.expected) from exc
+        except (OSError, ValueError, TypeError) as exc:   # truncated or corrupt FITS
+            raise ConfigError("lens.deflection", [lens.deflection.x, lens.deflection.y],
+                              f"complete, readable FITS maps ({exc})") from exc
+
+
+def warnings(scene) -> list[str]:
+    """Scenes that run but lose accuracy without an error: one line each."""
+    out = []
+    cl = scene.source.clumps
+    pix = scene.render.source_pixel_arcsec
+    if scene.lens is not None and cl is not None and cl.catalog is not None:
+        from astropy.table import Table
+        from .population import read_clump_catalog
+        t = read_clump_catalog(cl.catalog, arcsec_per_pc=1.0)
+        if "re_arcsec" in Table.read(cl.catalog).colnames:
+            small = int(np.sum(np.asarray(t["re_arcsec"], float) < SMEAR_FRACTION * pix))
+            if small:
+                out.append(f"{small} clump(s) of source.clumps.catalog have R_e below "
+                           f"{SMEAR_FRACTION:g} × render.source_pixel_arcsec = {pix:g}\": near a "
+                           "caustic (where they are ray-traced) their image and magnification are "
+                           "those of a clump smeared to that pixel (flagged in catalog.ecsv)")
+    return out
+
+
+# A ray-traced clump with R_e below this fraction of the source-plane pixel is smeared by it
+SMEAR_FRACTION = 0.5
+
+
+def preflight(scene) -> list[str]:
+    """check_files, then check_memory; returns `warnings`."""
+    check_files(scene)
+    check_memory(scene)
+    return warnings(scene)
+
+
+def smear_flags(model, table, source_pixel_arcsec: float) -> np.ndarray:
+    """A catalogue's `flag` column: "smeared" for a clump ray-traced through the source-plane
+    grid (in hybrid mode: near a caustic) with R_e < SMEAR_FRACTION of its pixel, whose
+    image and magnification are then those of a clump the size of a pixel; "" otherwise.
+
+    Flagged rather than rendered otherwise: the analytic path samples such a clump at the
+    rays, which resolve it no better (a 1e-5" clump between rays 0.6 mas apart).
+    """
+    flags = np.full(len(table), "", dtype="<U7")
+    if not getattr(model, "lensed", False) or model.clump_grid is None or not len(table):
+        return flags
+    traced = np.concatenate([np.asarray(i) for i in model.clump_stamp_index]) \
+        if model.clump_stamp_index else np.zeros(0, int)
+    re = np.asarray(table["re_arcsec"], float)
+    small = np.zeros(len(table), bool)
+    small[traced] = re[traced] < SMEAR_FRACTION * source_pixel_arcsec
+    flags[small] = "smeared"
+    return flags
