@@ -20,17 +20,23 @@ import math
 import os
 
 import numpy as np
+from astropy.io import fits
 
 from .errors import ConfigError
 
-# Bytes per pixel or per clump of each part of a run, at float64 (fitted from measured peak
-# memory of three scenes, benchmarks/README.md "Memory refusal"); float32 halves the images.
-_BYTES_HR_BUILD = 64          # per lens-plane pixel: traced corners, masks, footprints (float64)
-_BYTES_HR_IMAGE = 8           # per lens-plane pixel and image held (hosts, HR output bands)
-_BYTES_SUBGRID = 8 * 12       # per detector sub-pixel and band: image, padded FFTs, temporaries
+# Bytes per pixel or per clump of each part of a run, at float64 (float32 halves the
+# images), set from the peak memory (RSS) of three runs on a 2-core CPU host: the
+# estimate is 1.00x single-sersic's (0.51 GiB), 1.11x that of a 12" SIS field at 2.5 mas
+# (23 M lens-plane pixels, 1.85 GiB) and 0.82x cosmic-archipelago's (3.48 GiB)
+_BYTES_HR_BUILD = 48          # per lens-plane pixel: traced corners, masks, footprints (float64)
+_BYTES_HR_IMAGE = 8           # per lens-plane pixel and image held (hosts; HR output twice)
+_BYTES_FFT = 16 * 6           # per padded FFT pixel and band: complex temporaries
 _BYTES_CLUMP = 4096           # per clump: catalogue, photometry, stamps (+ per band below)
 _BYTES_CLUMP_BAND = 256
-_BASE_BYTES = 1.0 * 2**30     # the JAX runtime and compiled code
+_BYTES_HR_SOURCE = 8 * 3      # per HR source-plane pixel and band: image and its copies
+_HR_SOURCE_SIDE = 2047        # pipeline._write_hr's largest source grid
+_DIFFRACTION_PSF_ARCSEC = 4.0  # a diffraction PSF's width (32 λ/D: 4.5" at F444W)
+_BASE_BYTES = 0.5 * 2**30     # the Python and JAX runtime (single-sersic peaks at 0.52 GB)
 ENV_LIMIT = "CLUMPYLEN_MEMORY_LIMIT_GB"
 
 
@@ -38,8 +44,8 @@ def _sub_factor(scene, band) -> int:
     return scene.render.accuracy.psf_oversampling if band.psf != "none" else 1
 
 
-def _unlensed_half_width(scene) -> float:
-    """Half-width (arcsec) of an unlensed scene's detector field about the source centre."""
+def _source_radius(scene) -> float:
+    """Radius (arcsec) about the source centre holding its hosts' light and catalogue clumps."""
     from .model import _radius_enclosing
 
     src = scene.source
@@ -55,7 +61,23 @@ def _unlensed_half_width(scene) -> float:
         d = np.hypot(np.asarray(t["beta1_arcsec"], float) - c[0],
                      np.asarray(t["beta2_arcsec"], float) - c[1])
         r = max(r, float(d.max()) if d.size else 0.0)
-    return r + 3.0   # a PSF's reach
+    return r
+
+
+def _psf_side_arcsec(scene, band) -> float:
+    if band.psf == "none":
+        return 0.0
+    if band.psf == "diffraction":
+        return _DIFFRACTION_PSF_ARCSEC
+    try:
+        with fits.open(band.psf) as hdul:
+            for hdu in hdul:
+                if hdu.header.get("NAXIS", 0) >= 2:
+                    n = max(hdu.header["NAXIS1"], hdu.header["NAXIS2"])
+                    return n * (band.psf_pixel_arcsec or band.pixel_arcsec)
+    except (OSError, ValueError, KeyError):   # check_files reports unreadable files
+        pass
+    return _DIFFRACTION_PSF_ARCSEC
 
 
 def expected_clump_count(scene) -> int:
@@ -94,24 +116,29 @@ def memory_estimate(scene, *, field_arcsec=None, n_clumps=None) -> dict:
     field = _field(scene, field_arcsec)
     d = 4 if scene.render.dtype == "float32" else 8
     nb = len(scene.bands)
-    parts = {}
-    sub = 0.0
-    for b in scene.bands:
-        if field is not None:
-            w, h = field[0][1] - field[0][0], field[1][1] - field[1][0]
-        else:
-            w = h = 2 * _unlensed_half_width(scene)
-        s = _sub_factor(scene, b)
-        sub += math.ceil(w / b.pixel_arcsec) * math.ceil(h / b.pixel_arcsec) * s * s
-    parts["detector sub-grids"] = (sub * _BYTES_SUBGRID * d / 8,
-                                   "render.field_arcsec, or render.accuracy.psf_oversampling")
-    if scene.lens is not None and field is not None:
+    radius = _source_radius(scene)
+    if field is not None:
         w, h = field[0][1] - field[0][0], field[1][1] - field[1][0]
+    else:
+        w = h = 2 * radius
+    parts = {}
+    fft = 0.0
+    for b in scene.bands:
+        sub = b.pixel_arcsec / _sub_factor(scene, b)
+        k = _psf_side_arcsec(scene, b) / sub
+        fft += (w / sub + k) * (h / sub + k)
+    parts["detector grids and FFTs"] = (fft * _BYTES_FFT * d / 8,
+                                        "render.field_arcsec, or render.accuracy.psf_oversampling")
+    if scene.lens is not None and field is not None:
         hr = math.ceil(w / scene.render.lens_pixel_arcsec) * math.ceil(h / scene.render.lens_pixel_arcsec)
         n_comp = (scene.source.bulge is not None) + (scene.source.disk is not None)
-        held = n_comp + (nb if scene.output.hr else 0)
+        held = n_comp + (2 * nb if scene.output.hr else 0)
         parts["lens-plane grid"] = (hr * (_BYTES_HR_BUILD + _BYTES_HR_IMAGE * d / 8 * held),
                                     "render.field_arcsec or render.lens_pixel_arcsec")
+    if scene.output.hr:
+        side = min(_HR_SOURCE_SIDE, 2 * radius / scene.render.source_pixel_arcsec + 1)
+        parts["high-resolution source plane"] = (side**2 * nb * _BYTES_HR_SOURCE,
+                                                 "output.hr (false) or render.source_pixel_arcsec")
     n = expected_clump_count(scene) if n_clumps is None else int(n_clumps)
     if n:
         parts["clumps"] = (n * (_BYTES_CLUMP + _BYTES_CLUMP_BAND * nb),
@@ -216,12 +243,12 @@ def preflight(scene) -> list[str]:
 def smear_flags(model, table, source_pixel_arcsec: float) -> np.ndarray:
     """A catalogue's `flag` column: "smeared" for a clump ray-traced through the source-plane
     grid (in hybrid mode: near a caustic) with R_e < SMEAR_FRACTION of its pixel, whose
-    image and magnification are then those of a clump the size of a pixel; "" otherwise.
+    image and magnification are then those of a clump the size of a pixel; "ok" otherwise.
 
     Flagged rather than rendered otherwise: the analytic path samples such a clump at the
     rays, which resolve it no better (a 1e-5" clump between rays 0.6 mas apart).
     """
-    flags = np.full(len(table), "", dtype="<U7")
+    flags = np.full(len(table), "ok", dtype="<U7")
     if not getattr(model, "lensed", False) or model.clump_grid is None or not len(table):
         return flags
     traced = np.concatenate([np.asarray(i) for i in model.clump_stamp_index]) \

@@ -624,7 +624,7 @@ def _sersic_fields(t: dict, p: str, *, n_default: float, age_default: float, ban
             lo, hi = AB_MAG_RANGE
             mags[name] = _float(mt, k, mp, lo=lo, hi=hi,
                                 expected=f"an AB magnitude in [{lo:g}, {hi:g}]")
-    mass = _float(t, "mass_msun", p, None, lo=0)
+    mass = _float(t, "mass_msun", p, None, lo=0, hi=1e13)   # above any galaxy: overflows
     if mass is None:
         missing = [b for b in band_names if b not in mags]
         if missing:
@@ -940,21 +940,22 @@ def _band(t, i: int, base_dir, noise: bool) -> Band:
     if filt not in KNOWN_FILTERS[instrument]:
         near = difflib.get_close_matches(filt, KNOWN_FILTERS[instrument], n=1, cutoff=0.6)
         raise ConfigError(fp, t["filter"], f"a filter of {instrument}" + (f" (did you mean '{near[0]}'?)" if near else ""))
-    exptime = _float(t, "exptime_s", p, None, lo=0, lo_open=True)
+    # beyond these, counts/s variances (counts / t²) leave float32
+    exptime = _float(t, "exptime_s", p, None, lo=1e-3, hi=1e9)
     if noise and exptime is None:
         _missing(t, "exptime_s", p, "an exposure time in s > 0 (needed for noise; or set output.noise = false)")
     psf = _str(t, "psf", p, "diffraction")
     if psf not in ("none", "diffraction"):
         psf = _existing_file(psf, _join(p, "psf"), base_dir)
     pixel = _float(t, "pixel_arcsec", p, None, lo=0, lo_open=True)
-    zp = _float(t, "zeropoint_ab", p, None)
+    zp = _float(t, "zeropoint_ab", p, None, lo=0, hi=50)
     if pixel is None or zp is None:
         dflt = _instrument_defaults(instrument, filt, fp)
         pixel = pixel if pixel is not None else dflt.get("pixel_arcsec")
         zp = zp if zp is not None else dflt.get("zeropoint_ab")
     return Band(
         instrument=instrument, filter=filt, exptime_s=exptime,
-        sky_counts_per_s=_float(t, "sky_counts_per_s", p, 0.0, lo=0),
+        sky_counts_per_s=_float(t, "sky_counts_per_s", p, 0.0, lo=0, hi=1e6),
         pixel_arcsec=None if pixel is None else float(pixel),
         zeropoint_ab=None if zp is None else float(zp),
         psf=psf,
@@ -1011,7 +1012,8 @@ def scene_from_dict(d: dict, base_dir: str | os.PathLike | None = None, *, path:
         raise ConfigError("scene", "<missing>", "a [scene] table with z_source (required)")
     s = _table(d["scene"], "scene")
     _check_keys(s, "scene", _SCENE_KEYS)
-    z_source = _float(s, "z_source", "scene", lo=0, lo_open=True, expected="a redshift > 0")
+    z_source = _float(s, "z_source", "scene", lo=0, hi=30, lo_open=True,
+                      expected="a redshift in (0, 30]")
     cosmo = Cosmology()
     if "cosmology" in s:
         c = _table(s["cosmology"], "scene.cosmology")

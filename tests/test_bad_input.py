@@ -29,6 +29,7 @@ z_source = 2.0
 
 [source.bulge]
 re_arcsec = 0.1
+n = 1.0
 {bulge}
 
 {extra}
@@ -50,6 +51,10 @@ instrument = "JWST/NIRCam"
 filter = "F200W"
 exptime_s = 100.0
 psf = "none"
+
+[output]
+hr = false
+unlensed = false
 """
 
 
@@ -224,6 +229,7 @@ def test_out_paths(capsys, tmp_path):
     assert (old / "bands").is_dir()
 
 
+@pytest.mark.slow   # a subprocess importing JAX and compiling: 45 s on the shared host
 def test_sigint_midway_keeps_the_old_run(tmp_path):
     """A real `clumpylen simulate` interrupted once its temporary directory exists."""
     out = tmp_path / "run"
@@ -375,3 +381,78 @@ def test_validate_reads_the_deflection_maps(capsys, tmp_path):
     lens = ('[lens]\nz_lens = 0.5\ncenter_radec_deg = [64.0, -24.0]\n'
             'deflection = { x = "ax.fits", y = "ay.fits" }')
     user_error(capsys, "validate", tiny(tmp_path, extra=lens), fragments=["lens.deflection", "shape"])
+
+
+# ------------------------------------------------------------------ 11. noise by band name
+
+
+def test_noise_of_a_band_does_not_depend_on_the_others(capsys, tmp_path):
+    s = tiny(tmp_path)
+    out = tmp_path / "run"
+    assert run(capsys, "simulate", s, "--out", out, "--quiet")[0] == 0
+    with fits.open(out / "bands" / "F200W.fits") as f:
+        full = f[0].data.copy(), f["NOISELESS"].data.copy()
+    assert run(capsys, "simulate", s, "--out", out, "--quiet", "--bands", "F200W")[0] == 0
+    assert not (out / "bands" / "F150W.fits").exists()     # the re-run left nothing stale
+    with fits.open(out / "bands" / "F200W.fits") as f:
+        assert np.array_equal(f[0].data, full[0]) and np.array_equal(f["NOISELESS"].data, full[1])
+        assert not np.array_equal(f[0].data, f["NOISELESS"].data)
+    rundir.check_run(out)
+
+
+# ------------------------------------------------------------------ 12, 14. magnifications, smearing
+
+LENSED = """
+[scene]
+name = "sis"
+z_source = 2.0
+[source.clumps]
+catalog = "clumps.ecsv"
+[lens]
+z_lens = 0.5
+components = [{{ kind = "sis", theta_e_arcsec = 1.0 }}]
+[render]
+source_pixel_arcsec = 0.002
+lens_pixel_arcsec = 0.005
+field_arcsec = {{ x = [-1.7, 1.7], y = [-1.7, 1.7] }}
+accuracy = {{ preset = "fast", subsampling = 4, source_mode = "{mode}" }}
+[[bands]]
+instrument = "JWST/NIRCam"
+filter = "F200W"
+psf = "none"
+[output]
+noise = false
+unlensed = false
+hr = false
+"""
+
+
+def _lensed_catalogue(tmp_path, mode, clumps):
+    """clumps: (beta1, re_arcsec) on the SIS axis; returns the catalogue simulate writes."""
+    Table({"beta1_arcsec": [c[0] for c in clumps], "beta2_arcsec": [0.0] * len(clumps),
+           "re_arcsec": [c[1] for c in clumps], "q": [1.0] * len(clumps),
+           "pa_rad": [0.0] * len(clumps), "sersic_n": [1.0] * len(clumps),
+           "mag_F200W": [25.0] * len(clumps)}).write(tmp_path / "clumps.ecsv", overwrite=True)
+    (tmp_path / "sis.toml").write_text(LENSED.format(mode=mode))
+    pipeline.simulate(str(tmp_path / "sis.toml"), tmp_path / mode, progress=False)
+    return Table.read(tmp_path / mode / "catalog.ecsv")
+
+
+@pytest.mark.slow   # a lensed scene compiled: 18-36 s on the shared host
+@pytest.mark.parametrize("mode", ["analytic", "hybrid"])
+def test_magnifications_in_every_mode(tmp_path, mode):
+    # a clump at β = θ_E/2 behind an SIS: |μ+| + |μ-| = 3 + 1 = 4 (point source); in hybrid
+    # mode it is linearised (the only clump: no source-plane grid at all)
+    t = _lensed_catalogue(tmp_path, mode, [(0.5, 0.01)])
+    assert t["magnification"][0] == pytest.approx(4.0, rel=0.01)
+    assert list(t["flag"]) == ["ok"]
+
+
+@pytest.mark.slow   # a lensed scene compiled: 43 s on the shared host
+def test_clumps_smeared_by_the_source_pixel_are_flagged(capsys, tmp_path):
+    # a 1e-5" clump on the SIS caustic (its centre) is ray-traced on the 2 mas grid
+    t = _lensed_catalogue(tmp_path, "hybrid", [(0.5, 0.01), (1e-4, 1e-5)])
+    assert list(t["flag"]) == ["ok", "smeared"]
+    assert np.isfinite(t["magnification"]).all()
+    code, out, _ = run(capsys, "validate", tmp_path / "sis.toml")
+    assert code == 0 and "# warning: 1 clump(s)" in out
