@@ -327,6 +327,8 @@ def analyze_run(run_dir, *, n_apertures=100, aperture_radius_arcsec=None, nsigma
         raise ConfigError("n_apertures", n_apertures, "an integer >= 2")
     if not (nsigma > 0):
         raise ConfigError("nsigma", nsigma, "a positive number")
+    if not (np.isfinite(snr_threshold) and snr_threshold > 0):
+        raise ConfigError("--snr-threshold", snr_threshold, "a finite S/N > 0")
     if aperture_radius_arcsec is not None and not (aperture_radius_arcsec > 0):
         raise ConfigError("aperture_radius_arcsec", aperture_radius_arcsec, "a positive number or None")
     summary = _read_summary(run_dir)

@@ -196,6 +196,14 @@ def check_files(scene) -> None:
     if cl is not None and cl.catalog is None:
         from .population import clump_config_from_scene
         clump_config_from_scene(dataclasses.asdict(cl))
+    waves = scene.output.hr_rgb_um if scene.output.hr else None
+    if waves is not None:   # read only when the HR images are written: after the render
+        from .sps import default_library
+        rest = np.asarray(default_library().wavelength_aa) / 1e4
+        lo, hi = rest[0] * (1 + scene.z_source), rest[-1] * (1 + scene.z_source)
+        if not all(lo <= w <= hi for w in waves):
+            raise ConfigError("output.hr_rgb_um", list(waves), f"wavelengths inside the SSP "
+                              f"library's range at z = {scene.z_source:g}: {lo:.3f}-{hi:.3f} μm")
     lens = scene.lens
     if lens is not None and lens.deflection is not None:
         from .lensing.fits import load_deflection_maps
@@ -215,6 +223,20 @@ def warnings(scene) -> list[str]:
     out = []
     cl = scene.source.clumps
     pix = scene.render.source_pixel_arcsec
+    if scene.lens is not None and cl is not None and cl.catalog is None:
+        # sampled sizes: the smallest clump of the size relation, 2 sigma below it
+        from .cosmology import arcsec_per_pc, make_cosmology
+        from .population import clump_config_from_scene
+        c = clump_config_from_scene(dataclasses.asdict(cl))
+        re_pc = (c.size_norm_pc * (c.cmf_m_min_msun / c.size_pivot_msun) ** c.size_slope
+                 * math.exp(-2 * c.size_scatter_ln))
+        re = re_pc * arcsec_per_pc(scene.z_source, make_cosmology(scene.cosmology.H0,
+                                                                  scene.cosmology.Om0))
+        if re < SMEAR_FRACTION * pix:
+            out.append(f"sampled clumps of M = cmf.m_min_msun reach R_e = {re:.2g}\" (2 sigma "
+                       f"below the size relation), below {SMEAR_FRACTION:g} × "
+                       f"render.source_pixel_arcsec = {pix:g}\": near a caustic such clumps "
+                       "are smeared to that pixel (flagged in catalog.ecsv)")
     if scene.lens is not None and cl is not None and cl.catalog is not None:
         from astropy.table import Table
         from .population import read_clump_catalog

@@ -167,6 +167,8 @@ def test_plot_and_analyze_check_the_manifest(capsys, tmp_path):
     foreign = make_fake_run(tmp_path / "foreign")
     shutil.copy(foreign / "bands" / "F150W.fits", foreign / "bands" / "F277W.fits")
     user_error(capsys, "plot", foreign, fragments=["bands/F277W.fits is not part of run"])
+    for bad in ("nan", "-3"):
+        user_error(capsys, "analyze", good, "--snr-threshold", bad, fragments=["--snr-threshold"])
     broken = make_fake_run(tmp_path / "broken")
     (broken / "manifest.json").write_text("{not json")
     user_error(capsys, "analyze", broken, fragments=["manifest.json"])
@@ -373,6 +375,12 @@ def test_validate_refuses_what_simulate_would(capsys, tmp_path):
                fragments=["source.clumps.ages.max_myr"])
 
 
+def test_hr_wavelengths_outside_the_ssp_library(capsys, tmp_path):
+    s = Path(tiny(tmp_path)).read_text().replace("hr = false", "hr = true\nhr_rgb_um = [1000.0, 2.0, 1.5]")
+    (tmp_path / "s.toml").write_text(s)
+    user_error(capsys, "validate", tmp_path / "s.toml", fragments=["output.hr_rgb_um", "1000"])
+
+
 def test_validate_reads_the_deflection_maps(capsys, tmp_path):
     from clumpylen_jax import io
     for name, shape in (("ax.fits", (20, 20)), ("ay.fits", (20, 21))):
@@ -456,3 +464,13 @@ def test_clumps_smeared_by_the_source_pixel_are_flagged(capsys, tmp_path):
     assert np.isfinite(t["magnification"]).all()
     code, out, _ = run(capsys, "validate", tmp_path / "sis.toml")
     assert code == 0 and "# warning: 1 clump(s)" in out
+
+
+def test_validate_warns_of_sampled_clumps_below_the_source_pixel(capsys, tmp_path):
+    extra = ('[source.clumps]\nhost = "bulge"\n\n[lens]\nz_lens = 0.5\n'
+             'components = [{ kind = "sis", theta_e_arcsec = 1.0 }]')
+    code, out, err = run(capsys, "validate", tiny(tmp_path, bulge="mass_msun = 1e9", extra=extra))
+    assert code == 0, err   # 5 mas source pixels: clumps of 1e4 Msun are ~0.3 mas at z = 2
+    assert "# warning: sampled clumps" in out and "render.source_pixel_arcsec = 0.005" in out
+    code, out, _ = run(capsys, "validate", "cosmic-archipelago")
+    assert code == 0 and "warning" not in out
