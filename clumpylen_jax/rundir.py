@@ -14,7 +14,7 @@ SIGINT/SIGTERM held back for those two renames. Hence
 - two runs into one directory never mix: the last to finish wins, whole.
 
 An existing directory is replaced only when it is empty or holds a run
-(`manifest.json`, or `summary.json` from before manifests): never a directory
+(`manifest.json`, or `summary.json` and `bands` from before manifests): never a directory
 of other files. `plot` and `analyze` call `check_run` first: a directory
 without a manifest, with a file missing, changed or foreign, is refused.
 """
@@ -55,7 +55,8 @@ class RunDirectory:
 
 
 def _is_run(d: Path) -> bool:
-    return (d / MANIFEST).is_file() or (d / "summary.json").is_file()
+    """A run of ours: a manifest, or (runs from before manifests) summary.json and bands."""
+    return (d / MANIFEST).is_file() or ((d / "summary.json").is_file() and (d / "bands").exists())
 
 
 def check_target(out_dir, setting: str = "--out") -> Path:
@@ -270,9 +271,13 @@ def run_directory(out_dir, *, setting: str = "--out") -> Iterator[RunDirectory]:
         yield run
         write_manifest(tmp, run.meta)
         _swap_in(tmp, out, setting)
-    except BaseException:
+    except BaseException as exc:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+            if isinstance(exc, OSError) and str(exc.filename or "").startswith(str(tmp)):
+                # name the file the user asked for, not its temporary twin
+                final = str(out) + str(exc.filename)[len(str(tmp)):]
+                raise type(exc)(exc.errno, exc.strerror, final) from exc
         raise
 
 
