@@ -27,10 +27,12 @@ from .errors import ConfigError
 # Bytes per pixel or per clump of each part of a run, at float64 (float32 halves the
 # images), set from the peak memory (RSS) of three runs on a 2-core CPU host: the
 # estimate is 1.00x single-sersic's (0.51 GiB), 1.11x that of a 12" SIS field at 2.5 mas
-# (23 M lens-plane pixels, 1.85 GiB) and 0.82x cosmic-archipelago's (3.48 GiB)
+# (23 M lens-plane pixels, 1.85 GiB) and 0.83x cosmic-archipelago's (3.48 GiB)
 _BYTES_HR_BUILD = 48          # per lens-plane pixel: traced corners, masks, footprints (float64)
 _BYTES_HR_IMAGE = 8           # per lens-plane pixel and image held (hosts; HR output twice)
 _BYTES_FFT = 16 * 6           # per padded FFT pixel and band: complex temporaries
+_BYTES_STAMP = 8 * 3          # per source-grid stamp pixel of a ray-traced clump
+_STAMP_FLUX_FRACTION = 0.9999  # the light a stamp holds (model.Accuracy's default)
 _BYTES_CLUMP = 4096           # per clump: catalogue, photometry, stamps (+ per band below)
 _BYTES_CLUMP_BAND = 256
 _BYTES_HR_SOURCE = 8 * 3      # per HR source-plane pixel and band: image and its copies
@@ -99,6 +101,29 @@ def expected_clump_count(scene) -> int:
     return int(math.ceil(cl.mass_fraction * host.mass_msun / mean))
 
 
+def _stamp_side(scene) -> float:
+    """Mean side (source-grid pixels) of a ray-traced clump's stamp: catalogue sizes, or the
+    size relation at the mean CMF mass."""
+    from .model import _radius_enclosing
+
+    cl = scene.source.clumps
+    if cl.catalog is not None:
+        from .population import read_clump_catalog
+        t = read_clump_catalog(cl.catalog, arcsec_per_pc=1.0, sersic_n_default=cl.sersic_n)
+        re, n = np.asarray(t["re_arcsec"], float), np.asarray(t["sersic_n"], float)
+    else:
+        from .cosmology import arcsec_per_pc, make_cosmology
+        from .population import clump_config_from_scene
+        c = clump_config_from_scene(dataclasses.asdict(cl))
+        mean_mass = cl.mass_fraction * (cl.cmf.m_min_msun * cl.cmf.m_max_msun) ** 0.5
+        re_pc = c.size_norm_pc * (min(mean_mass, c.cmf_m_max_msun) / c.size_pivot_msun) ** c.size_slope
+        re = np.array([re_pc * arcsec_per_pc(scene.z_source, make_cosmology(
+            scene.cosmology.H0, scene.cosmology.Om0))])
+        n = np.array([cl.sersic_n])
+    r = _radius_enclosing(_STAMP_FLUX_FRACTION, re, n)
+    return float(np.sqrt(np.mean((2 * r / scene.render.source_pixel_arcsec + 3) ** 2)))
+
+
 def _field(scene, field_arcsec):
     if field_arcsec is not None:
         return field_arcsec
@@ -128,21 +153,25 @@ def memory_estimate(scene, *, field_arcsec=None, n_clumps=None) -> dict:
         k = _psf_side_arcsec(scene, b) / sub
         fft += (w / sub + k) * (h / sub + k)
     parts["detector grids and FFTs"] = (fft * _BYTES_FFT * d / 8,
-                                        "render.field_arcsec, or render.accuracy.psf_oversampling")
+                                        "render.field_arcsec (smaller) or render.accuracy.psf_oversampling (lower)")
     if scene.lens is not None and field is not None:
         hr = math.ceil(w / scene.render.lens_pixel_arcsec) * math.ceil(h / scene.render.lens_pixel_arcsec)
         n_comp = (scene.source.bulge is not None) + (scene.source.disk is not None)
         held = n_comp + (2 * nb if scene.output.hr else 0)
         parts["lens-plane grid"] = (hr * (_BYTES_HR_BUILD + _BYTES_HR_IMAGE * d / 8 * held),
-                                    "render.field_arcsec or render.lens_pixel_arcsec")
+                                    "render.field_arcsec (smaller) or render.lens_pixel_arcsec (larger)")
     if scene.output.hr:
         side = min(_HR_SOURCE_SIDE, 2 * radius / scene.render.source_pixel_arcsec + 1)
         parts["high-resolution source plane"] = (side**2 * nb * _BYTES_HR_SOURCE,
-                                                 "output.hr (false) or render.source_pixel_arcsec")
+                                                 "render.source_pixel_arcsec (larger) or output.hr (false)")
     n = expected_clump_count(scene) if n_clumps is None else int(n_clumps)
+    if n and scene.lens is not None and scene.render.accuracy.source_mode != "analytic":
+        side = _stamp_side(scene)
+        parts["clump stamps on the source grid"] = (n * side**2 * _BYTES_STAMP,
+                                                    "render.source_pixel_arcsec (larger)")
     if n:
         parts["clumps"] = (n * (_BYTES_CLUMP + _BYTES_CLUMP_BAND * nb),
-                           "the number of clumps (source.clumps.mass_fraction, cmf.m_min_msun "
+                           "source.clumps (fewer clumps: mass_fraction, cmf.m_min_msun "
                            "or the catalogue)")
     total = _BASE_BYTES + sum(v for v, _ in parts.values())
     return {"total": total, "parts": parts}
@@ -172,9 +201,9 @@ def check_memory(scene, *, field_arcsec=None, n_clumps=None) -> dict:
     if est["total"] > limit:
         name, (size, knob) = max(est["parts"].items(), key=lambda kv: kv[1][0])
         gib = 2.0**30
-        raise ConfigError(knob.split(",")[0].split(" or ")[0], f"a run needing ~{est['total'] / gib:.3g} GiB "
+        raise ConfigError(knob.split(" (")[0], f"a run needing ~{est['total'] / gib:.3g} GiB "
                           f"({name}: {size / gib:.3g} GiB)",
-                          f"a scene that fits in {limit / gib:.3g} GiB of memory: shrink {knob} "
+                          f"a scene that fits in {limit / gib:.3g} GiB of memory: change {knob} "
                           f"(limit: ${ENV_LIMIT})")
     return est
 

@@ -310,6 +310,13 @@ def test_scenes_too_big_for_memory_are_refused(capsys, tmp_path, monkeypatch):
     user_error(capsys, "simulate", tiny(tmp_path, extra=lens,
                                         field='field_arcsec = { x = [-100, 100], y = [-100, 100] }'),
                "--out", tmp_path / "r", fragments=["render.field_arcsec", "lens_pixel_arcsec"])
+    Table({"beta1_arcsec": [0.1], "beta2_arcsec": [0.0], "re_arcsec": [0.001], "q": [1.0],
+           "pa_rad": [0.0], "mag_F150W": [26.0], "mag_F200W": [26.0]}).write(tmp_path / "c.ecsv")
+    fine = Path(tiny(tmp_path, extra=lens + '\n[source.clumps]\ncatalog = "c.ecsv"')).read_text()
+    (tmp_path / "fine.toml").write_text(fine.replace("source_pixel_arcsec = 0.005",
+                                                     "source_pixel_arcsec = 1e-9"))
+    user_error(capsys, "validate", tmp_path / "fine.toml",
+               fragments=["render.source_pixel_arcsec", "larger", "clump stamps"])
     many = ('[source.clumps]\nhost = "bulge"\nmass_fraction = 0.9\n'
             'cmf = { m_min_msun = 1e3, m_max_msun = 1e5 }')
     user_error(capsys, "validate", tiny(tmp_path, bulge="mass_msun = 1e12", extra=many),
