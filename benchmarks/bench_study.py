@@ -106,7 +106,7 @@ def run_batch(study, n_workers: int, cache: str) -> dict:
             "steady_s_by_kind": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in kinds.items()}}
 
 
-def steady_costs(tmp: Path, positions=(4, 8, 16), maps=(4, 8, 12)) -> dict:
+def steady_costs(tmp: Path, positions=(4, 16), maps=(4, 12)) -> dict:
     """Per-task steady time in this process (after one warm-up call of each shape)."""
     from clumpylen_jax.study import study_from_dict
     from clumpylen_jax.study.tasks import make_tasks

@@ -211,6 +211,7 @@ def test_dask_cluster_with_a_killed_worker(tmp_path):
             time.sleep(0.2)
         assert len(list((out / "tasks").glob("*.npz"))) >= 3, "the study did not start"
         workers[0].send_signal(signal.SIGKILL)                      # a worker dies mid-study
+        assert len(list((out / "tasks").glob("*.npz"))) < 12
         assert run.wait(timeout=400) == 0
     finally:
         for p in procs:
@@ -250,6 +251,7 @@ region_arcsec = 0.25
 positions = 16
 positions_per_task = 16
 map_npix = 6
+nsigma = 5.0
 npixels = 1
 """))
     res = run_study(study, tmp_path / "c", scheduler="synchronous", progress=False)
@@ -257,6 +259,57 @@ npixels = 1
     t.sort("mass_msun")
     snr, comp = np.asarray(t["fisher_snr_median"]), np.asarray(t["completeness"])
     assert np.all(np.diff(snr) > 0)                                 # S/N grows with mass
-    assert comp[snr > 12].min() >= 0.8 and comp[snr < 2].max() <= 0.2
     assert snr.min() < 2 and snr.max() > 12                         # the grid spans the fall
+    assert comp[snr > 12].min() >= 0.8 and comp[snr < 2].max() <= 0.2
+    # the 50 % point (interpolated in log S/N) is where the Fisher forecast says S/N ≈ 5
+    k = int(np.argmax(comp >= 0.5))
+    w = (0.5 - comp[k - 1]) / (comp[k] - comp[k - 1])
+    snr50 = np.exp((1 - w) * np.log(snr[k - 1]) + w * np.log(snr[k]))
+    assert 2.5 < snr50 < 10, snr50
     assert all(Path(f).exists() for f in res["files"].values())
+
+
+@pytest.mark.slow
+def test_vmapped_fisher_matches_the_inference_package(tmp_path):
+    """The study's vmapped Fisher S/N equals inference.detect.clump_detectability, clump by clump."""
+    from clumpylen_jax.inference.detect import clump_detectability
+    from clumpylen_jax.study import work
+
+    study = load_study(_write(tmp_path, SIMULATE.replace("{samples}", "2")))
+    var = work.variant(study, 0)
+    pos = var.center_arcsec + np.array([[0.1, -0.05], [-0.2, 0.12]])
+    flux = np.array([[0.3], [0.8]])
+    re = np.array([0.004, 0.008])
+    new = work._clumps(pos, flux, re, study.clumps)
+    snr = np.asarray(work.fisher_snr(var.model(1), var.base, new))[:, 0]
+    for k in range(2):
+        one = work._clumps(pos[k:k + 1], flux[k:k + 1], re[k:k + 1], study.clumps)
+        t = clump_detectability(var.model(1), work._append(var.base, one))
+        assert snr[k] == pytest.approx(t["snr_flux_F200W"][0], rel=1e-6)
+
+
+@pytest.mark.slow
+def test_fit_study_recovers_clumps_from_a_start_off_the_truth(tmp_path):
+    from astropy.table import Table
+
+    study = load_study(_write(tmp_path, """
+[study]
+kind = "fit"
+seed = 5
+scenes = ["tiny.toml"]
+[clumps]
+mass_msun = { min = 5e6, max = 2e7 }
+re_pc = { min = 40.0, max = 80.0 }
+region_arcsec = 0.25
+[fit]
+samples = 3
+clumps_per_sample = 2
+"""))
+    res = run_study(study, tmp_path / "f", scheduler="synchronous", progress=False)
+    t = Table.read(res["files"]["table"])
+    assert len(t) == 6
+    start_err = np.abs(t["start_flux_F200W"] / t["true_flux_F200W"] - 1)
+    fit_err = np.abs(t["fit_flux_F200W"] / t["true_flux_F200W"] - 1)
+    assert np.all(start_err > 0) and np.median(fit_err) < np.median(start_err)
+    pull = (t["fit_flux_F200W"] - t["true_flux_F200W"]) / t["err_flux_F200W"]
+    assert np.all(np.abs(pull) < 5)

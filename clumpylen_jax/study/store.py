@@ -84,7 +84,10 @@ def _write_zarr(datasets: dict, final: Path) -> None:
     tmp = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}."))
     shutil.rmtree(tmp)
     for group, ds in datasets.items():
-        ds.to_zarr(tmp, group=group, mode="a" if tmp.exists() else "w")
+        # zarr format 2: read by every zarr library and version (format 3 has no spec yet
+        # for fixed-length strings such as band names)
+        ds.to_zarr(tmp, group=group, mode="a" if tmp.exists() else "w", zarr_format=2,
+                   consolidated=True)
     _replace_dir(tmp, final)
 
 

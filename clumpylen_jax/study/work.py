@@ -122,17 +122,6 @@ def _append(base: Source, new: Clumps) -> Source:
     return Source(bulge=base.bulge, disk=base.disk, clumps=cl)
 
 
-def _dark(base: Source) -> Source:
-    """base with every flux set to zero (the injected clump alone, same structure)."""
-    return Source(
-        bulge=None if base.bulge is None else eqx.tree_at(lambda s: s.flux, base.bulge,
-                                                          jnp.zeros_like(base.bulge.flux)),
-        disk=None if base.disk is None else eqx.tree_at(lambda s: s.sersic.flux, base.disk,
-                                                        jnp.zeros_like(base.disk.sersic.flux)),
-        clumps=None if base.clumps is None else eqx.tree_at(lambda c: c.flux, base.clumps,
-                                                            jnp.zeros_like(base.clumps.flux)))
-
-
 # ---------------------------------------------------------------- compiled kernels
 
 
@@ -143,16 +132,15 @@ def _observe(model, src, seed):
 
 @eqx.filter_jit
 def _inject(model, base, new: Clumps, seeds):
-    """For each injected clump (vmapped): noisy images, variances and its noiseless image alone."""
-    dark = _dark(base)
-
-    def one(c, s):
-        noisy, _, var = model.observe(_append(base, c), jax.random.key(s))
-        return noisy, var, model.band_images(_append(dark, c))
-
-    # the known scene without the clump (with sky): what detection subtracts
+    """For each injected clump (vmapped): noisy images, variances and its noiseless image alone
+    (the scene with it minus the scene without it: images are linear in the light), and
+    the known scene without it (with sky), what detection subtracts."""
     first = jax.tree_util.tree_map(lambda x: x[:1], new)
     host = model.noiseless(_append(base, eqx.tree_at(lambda c: c.flux, first, first.flux * 0)))
+
+    def one(c, s):
+        noisy, clean, var = model.observe(_append(base, c), jax.random.key(s))
+        return noisy, var, tuple(a - h for a, h in zip(clean, host))
 
     noisy, var, alone = jax.vmap(one)(jax.tree_util.tree_map(lambda x: x[:, None], new), seeds)
     return noisy, var, alone, host
