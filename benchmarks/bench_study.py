@@ -89,51 +89,53 @@ def run_batch(study, n_workers: int, cache: str) -> dict:
         t0 = time.perf_counter()
         out = client.gather([client.submit(timed_task, study, t, pure=False) for t in tasks])
         wall = time.perf_counter() - t0
-    per_worker: dict = {}
+    # the first task of each (worker, kind of task) compiles its program; the rest are steady
+    groups: dict = {}
     for tid, dt, kind, pid, rss in out:
-        per_worker.setdefault(pid, []).append((dt, kind, rss))
-    first = [v[0][0] for v in per_worker.values()]
-    steady = [dt for v in per_worker.values() for dt, _, _ in v[1:]]
-    kinds = {}
-    for tid, dt, kind, pid, rss in out:
-        kinds.setdefault(kind, []).append(dt)
+        groups.setdefault((pid, kind), []).append(dt)
+    first = [v[0] for v in groups.values()]
+    steady = [dt for v in groups.values() for dt in v[1:]]
+    by_kind = {}
+    for (pid, kind), v in groups.items():
+        by_kind.setdefault(kind, []).extend(v[1:])
     return {"workers": n_workers, "tasks": len(tasks), "wall_s": wall,
             "tasks_per_hour": 3600 * len(tasks) / wall,
             "first_task_s": float(np.mean(first)),
             "steady_task_s": float(np.median(steady)) if steady else float("nan"),
             "steady_tasks_per_hour": 3600 * n_workers / np.median(steady) if steady else float("nan"),
-            "peak_rss_mib_per_worker": float(max(r for v in per_worker.values() for _, _, r in v)),
-            "steady_s_by_kind": {k: float(np.median(v[1:] if len(v) > 1 else v)) for k, v in kinds.items()}}
+            "peak_rss_mib_per_worker": float(max(r for *_, r in out)),
+            "steady_s_by_kind": {k: float(np.median(v)) for k, v in by_kind.items() if v},
+            "raw": [(tid, round(dt, 4), kind, pid) for tid, dt, kind, pid, _ in out]}
 
 
-def steady_costs(tmp: Path, positions=(4, 16), maps=(4, 12)) -> dict:
-    """Per-task steady time in this process (after one warm-up call of each shape)."""
+def steady_costs(tmp: Path, shapes=((8, 8), (16, 12))) -> dict:
+    """Per-task steady time in this process (after one warm-up call of each shape):
+    (positions per injection task, Fisher map side) pairs."""
     from clumpylen_jax.study import study_from_dict
     from clumpylen_jax.study.tasks import make_tasks
     from clumpylen_jax.study.work import run_task
     import tomllib
 
     rows = []
-    for pos in positions:
-        for m in maps if pos == positions[0] else maps[:1]:
-            text = STUDIES["completeness"].format(n=3, pos=pos, m=m)
-            study = study_from_dict(tomllib.loads(text), str(tmp), text)
-            tasks = make_tasks(study)
-            res = {}
-            for kind in ("inject", "map"):
-                ts = [t for t in tasks if t.kind == kind]
-                t0 = time.perf_counter()
-                run_task(study, ts[0])
-                compile_s = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                for t in ts[1:]:
-                    run_task(study, t)
-                res[kind] = (compile_s, (time.perf_counter() - t0) / (len(ts) - 1))
-            rows.append({"positions": pos, "map_npix": m,
-                         "inject_first_s": res["inject"][0], "inject_steady_s": res["inject"][1],
-                         "inject_s_per_position": res["inject"][1] / pos,
-                         "map_first_s": res["map"][0], "map_steady_s": res["map"][1],
-                         "map_s_per_position": res["map"][1] / (m * m + pos)})
+    for pos, m in shapes:
+        text = STUDIES["completeness"].format(n=3, pos=pos, m=m)
+        study = study_from_dict(tomllib.loads(text), str(tmp), text)
+        tasks = make_tasks(study)
+        res = {}
+        for kind in ("inject", "map"):
+            ts = [t for t in tasks if t.kind == kind]
+            t0 = time.perf_counter()
+            run_task(study, ts[0])
+            compile_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            for t in ts[1:]:
+                run_task(study, t)
+            res[kind] = (compile_s, (time.perf_counter() - t0) / (len(ts) - 1))
+        rows.append({"positions": pos, "map_npix": m,
+                     "inject_first_s": res["inject"][0], "inject_steady_s": res["inject"][1],
+                     "inject_s_per_position": res["inject"][1] / pos,
+                     "map_first_s": res["map"][0], "map_steady_s": res["map"][1],
+                     "map_s_per_position": res["map"][1] / (m * m + pos)})
     return {"rows": rows}
 
 
@@ -203,8 +205,9 @@ def _markdown(r) -> str:
              f"Host: {r['host']['cpus']} CPUs, load average {r['host']['load_avg'][0]:.1f} "
              f"during the run ({r['host']['note']}).", "",
              "Tiny unlensed scene (one NIRCam band, 52² px, no PSF, `fast` accuracy). "
-             "First task = the first on each worker (includes compilation; the compilation "
-             "cache starts empty); steady = median of the others. Tasks: simulate = one "
+             "First task = the first of each kind on each worker (includes compilation; the "
+             "compilation cache starts empty for the 1-worker run, the 2-worker run finds it "
+             "filled); steady = median of the others. Tasks: simulate = one "
              "sample (≤ 16 clumps), completeness = 8 injections + detection per task and one "
              "Fisher map (8² + 8 positions, vmapped) per cell; fit = one MAP fit of 2 clumps "
              "from a start off the truth.", "",

@@ -39,11 +39,12 @@ def enable_compilation_cache(path: str) -> None:
     """Point this process's JAX at a persistent compilation cache."""
     import jax
 
-    import clumpylen_jax  # noqa: F401  (float64 before any array)
+    # before anything compiles: JAX decides once, at its first compilation, whether to cache
     os.makedirs(path, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", path)
     # the study's programs compile in seconds: cache every one that takes over 0.2 s
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    import clumpylen_jax  # noqa: F401  (float64 before any array)
 
 
 def _plugin(path: str):
