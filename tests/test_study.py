@@ -4,7 +4,6 @@ and the injection–recovery completeness against the Fisher forecast."""
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import socket
 import subprocess

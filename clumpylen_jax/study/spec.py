@@ -33,7 +33,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import tomllib
-from typing import Any, Optional
+from typing import Optional
 
 import numpy as np
 

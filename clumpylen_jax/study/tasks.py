@@ -16,8 +16,6 @@ tasks are listed bucket by bucket.
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
-
 import numpy as np
 
 from .spec import Study
@@ -129,11 +127,3 @@ def make_tasks(study: Study) -> list[Task]:
                         tasks.append(Task(f"inj-v{v}-m{i}-s{j}-p{k}", "inject", v, (v, 1),
                                           mass_index=i, size_index=j, positions=idx))
     return sorted(tasks, key=lambda t: (str(t.shape), t.id))
-
-
-def task_index(tasks) -> dict:
-    return {t.id: t for t in tasks}
-
-
-def n_clumps_of(task: Task) -> Optional[int]:
-    return task.shape[1] if isinstance(task.shape[1], int) else None
