@@ -6,6 +6,7 @@
     clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots]
     clumpylen plot DIR                       figures of a finished run
     clumpylen analyze DIR                    S/N and limiting magnitudes of a finished run
+    clumpylen study STUDY --out DIR [--scheduler ADDRESS] [--workers N]   a study on Dask
 
 User errors (an invalid scene, a missing file, a TOML syntax error) exit with
 status 2 and one line on stderr, without a traceback. Heavy modules (JAX, the
@@ -198,6 +199,27 @@ def _print_summary(summary, out: str) -> None:
         print(f"  time: {total:.1f} s")
 
 
+def _cmd_study(args) -> int:
+    from .study import load_study, run_study
+
+    study = load_study(args.study)             # validated entirely before any work is sent
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError("--workers", args.workers, "an integer >= 1")
+    out = os.path.abspath(args.out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ConfigError("--out", args.out, "a directory (this path is a file)")
+    if not args.quiet:
+        print(f"{study.describe()} -> {out}", file=sys.stderr)
+    result = run_study(study, out, scheduler=args.scheduler, n_workers=args.workers,
+                       progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {out}: {result['tasks']} tasks ({result['ran']} run now, "
+              f"{result['tasks'] - result['ran']} already done)")
+        for name, path in result["files"].items():
+            print(f"  {name}: {path}")
+    return EXIT_OK
+
+
 def _existing_dir(path: str) -> str:
     """A complete run directory (its manifest checked), else a user error."""
     from .rundir import check_run
@@ -289,6 +311,16 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=int, help="override the scene's seed (clump catalogue)")
     q.add_argument("--quiet", "-q", action="store_true", help="no output")
     q.set_defaults(func=_cmd_fit)
+
+    q = sub.add_parser("study", help="run a study (many samples, injections or fits) on Dask; "
+                       "rerun to resume")
+    q.add_argument("study", metavar="STUDY", help="study file (.toml)")
+    q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
+    q.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler "
+                   "(tcp://host:8786); default: a LocalCluster here; 'synchronous': no Dask")
+    q.add_argument("--workers", type=int, help="LocalCluster workers (default: one per core)")
+    q.add_argument("--quiet", "-q", action="store_true", help="no progress output")
+    q.set_defaults(func=_cmd_study)
 
     q = sub.add_parser("plot", help="make the figures of a finished run")
     q.add_argument("dir", metavar="DIR", help="output directory of `clumpylen simulate`")
