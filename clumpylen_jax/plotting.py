@@ -10,7 +10,10 @@ draws what the run has:
 - lens_planes.png — lens plane (image + critical curves) and source plane
   (caustics, clumps, source centre); lensed runs only;
 - mosaic.png — every band, asinh stretch, with the unlensed source inset
-  at the same pixel scale (as the white squares of the paper's figures).
+  at the same pixel scale (as the white squares of the paper's figures);
+- paper_rgb.png — the paper's colour figure: HR lensed, HR convolved with a
+  band's PSF, the detector composites, the clump of interest circled
+  (paperfig.py).
 
 Matplotlib runs on the Agg backend (no display); every file is written via
 io.atomic_write.
@@ -175,14 +178,20 @@ def plot_mosaic(bands, path):
     return _save(fig, path)
 
 
-def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None, pixel_arcsec=None):
+def _critical_curves(lens, field, pixel_arcsec=None):
+    from .lensing.derived import critical_curves
+
+    (x0, x1), (y0, y1) = field
+    return critical_curves(lens, field, pixel_arcsec or max(x1 - x0, y1 - y0) / 400.0)
+
+
+def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None, pixel_arcsec=None, cc=None):
     """Lens plane with critical curves (over `backdrop`, a band dict) and source plane with caustics."""
-    from .lensing.derived import caustics, critical_curves
+    from .lensing.derived import caustics
 
     plt = _pyplot()
     (x0, x1), (y0, y1) = field
-    pixel_arcsec = pixel_arcsec or max(x1 - x0, y1 - y0) / 400.0
-    cc = critical_curves(lens, field, pixel_arcsec)
+    cc = cc if cc is not None else _critical_curves(lens, field, pixel_arcsec)
     ca = caustics(lens, cc)
     fig, (axl, axs) = plt.subplots(1, 2, figsize=(11, 5.2))
     if backdrop is not None:
@@ -219,6 +228,7 @@ def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None
 def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     """Make every figure the run supports; returns the PNG paths (in out_dir, default RUN/plots)."""
     from .analysis import _lens_from_summary, _read_catalog, band_data
+    from .paperfig import plot_paper_rgb
 
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").exists():
@@ -238,10 +248,17 @@ def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     bands.sort(key=lambda b: order.index(b["filter"]) if b["filter"] in order else len(order))
     lens = _lens_from_summary(summary, run_dir)
     field = summary.get("field_arcsec")
+    cc = None
     if lens is not None and field:
+        cc = _critical_curves(lens, field)
         center = (summary["scene"].get("source") or {}).get("center_arcsec", [0.0, 0.0])
         written.append(plot_lens_planes(lens, field, center, catalog, out / "lens_planes.png",
-                                        backdrop=bands[0] if bands else None))
+                                        backdrop=bands[0] if bands else None, cc=cc))
     if bands:
         written.append(plot_mosaic(bands, out / "mosaic.png"))
+    curves = [] if cc is None else list(cc["tangential"]) + list(cc["radial"])
+    paper = plot_paper_rgb(run_dir, out / "paper_rgb.png", summary=summary, bands={b["filter"]: b for b in bands},
+                           catalog=catalog, lens=lens, curves=curves)
+    if paper is not None:
+        written.append(paper)
     return written
