@@ -27,7 +27,7 @@ import numpy as np
 
 from . import rgbimage
 
-__all__ = ["plot_paper_rgb"]
+__all__ = ["plot_paper_rgb", "paper_figure_of_run"]
 
 CIRCLE_RADIUS_ARCSEC = 0.12  # a few NIRCam SW PSF widths: the clump and its immediate surroundings
 
@@ -213,3 +213,29 @@ def _draw(path, panels, circles, curves, plt, atomic_write):
     finally:
         plt.close(fig)
     return Path(path)
+
+
+def paper_figure_of_run(run_dir, out_dir=None, *, curves=None):
+    """plot_paper_rgb for a finished run read from disk: RUN/plots/paper_rgb.png (or out_dir/).
+
+    curves: the critical curves ((N, 2) arrays, arcsec); computed from the run's lens when None.
+    Returns the path, or None when the run has nothing to show.
+    """
+    import json
+
+    from .analysis import _lens_from_summary, _read_catalog, band_data
+
+    run_dir = Path(run_dir)
+    with open(run_dir / "summary.json", encoding="utf-8") as fh:
+        summary = json.load(fh)
+    bands = {b["filter"]: b for b in (band_data(p) for p in sorted((run_dir / "bands").glob("*.fits")))}
+    lens = _lens_from_summary(summary, run_dir)
+    field = summary.get("field_arcsec")
+    if curves is None and lens is not None and field:
+        from .plotting import _critical_curves
+
+        cc = _critical_curves(lens, field)
+        curves = list(cc["tangential"]) + list(cc["radial"])
+    out = Path(out_dir) if out_dir is not None else run_dir / "plots"
+    return plot_paper_rgb(run_dir, out / "paper_rgb.png", summary=summary, bands=bands,
+                          catalog=_read_catalog(run_dir), lens=lens, curves=curves or [])

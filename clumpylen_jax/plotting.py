@@ -228,7 +228,7 @@ def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None
 def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     """Make every figure the run supports; returns the PNG paths (in out_dir, default RUN/plots)."""
     from .analysis import _lens_from_summary, _read_catalog, band_data
-    from .paperfig import plot_paper_rgb
+    from .paperfig import paper_figure_of_run
 
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").exists():
@@ -257,8 +257,7 @@ def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     if bands:
         written.append(plot_mosaic(bands, out / "mosaic.png"))
     curves = [] if cc is None else list(cc["tangential"]) + list(cc["radial"])
-    paper = plot_paper_rgb(run_dir, out / "paper_rgb.png", summary=summary, bands={b["filter"]: b for b in bands},
-                           catalog=catalog, lens=lens, curves=curves)
+    paper = paper_figure_of_run(run_dir, out, curves=curves)
     if paper is not None:
         written.append(paper)
     return written
