@@ -147,6 +147,17 @@ def _extent(band):
     return (x0, x0 + nx * p, y0, y0 + ny * p)
 
 
+def _band_norm(band):
+    """Asinh from −1σ of the sky noise (black) to the brightest noiseless light (at least 20σ): the
+    sky reads dark grey and the source keeps its structure, whatever the band's depth."""
+    from astropy.visualization import AsinhStretch, ImageNormalize
+
+    sigma = float(np.sqrt(np.median(band["variance"])))
+    top = float(np.percentile(band["noiseless"] - band["sky"], 99.9))
+    top = max(top, 20.0 * sigma) if sigma > 0 else (top or 1.0)
+    return ImageNormalize(vmin=-1.0 * sigma, vmax=top, stretch=AsinhStretch(0.2))
+
+
 def plot_mosaic(bands, path):
     """All bands (image − sky, asinh), the unlensed source inset bottom-left at the same pixel scale."""
     plt = _pyplot()
@@ -158,7 +169,8 @@ def plot_mosaic(bands, path):
         ax.axis("off")
     for ax, b in zip(axes.ravel(), bands):
         img = b["image"] - b["sky"]
-        ax.imshow(img, origin="lower", cmap="gray", norm=asinh_norm(img), extent=_extent(b))
+        ax.imshow(img, origin="lower", cmap="gray", norm=_band_norm(b), extent=_extent(b),
+                  interpolation="nearest")
         ax.set_title(f"{b['filter']}  ({b['exptime_s']:.0f} s)", fontsize=9)
         ax.tick_params(labelsize=7)
         unl = b.get("unlensed")
