@@ -2,8 +2,9 @@
 
 Each notebook is executed by nbclient (the `test` extra) in the notebooks/ folder. A notebook whose
 first tagged cell is `parameters` (as in papermill) gets one cell after it that sets `SMALL = True`:
-its small scene or short run, so that all notebooks together stay within the suite's time. See
-notebooks/README.md for how to add one.
+its small scene or short run. A notebook whose metadata says {"clumpylen": {"slow": true}} (over
+the default run's time even when small) runs only with `pytest -m slow`; its cells are still
+compiled in the default run. See notebooks/README.md for how to add one.
 """
 
 from __future__ import annotations
@@ -16,6 +17,15 @@ import pytest
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 ALL = sorted(NOTEBOOKS.glob("*.ipynb"))
 SMALL_CELL = "SMALL = True  # injected by tests/test_notebook.py: the notebook's small settings"
+
+
+def _slow(path) -> bool:
+    """Notebook metadata {"clumpylen": {"slow": true}}: over the default run's time even when small."""
+    meta = json.loads(path.read_text(encoding="utf-8")).get("metadata", {})
+    return bool(meta.get("clumpylen", {}).get("slow"))
+
+
+RUNS = [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if _slow(p) else []) for p in ALL]
 
 
 def test_there_are_notebooks():
@@ -32,6 +42,17 @@ def test_outputs_are_stripped(path):
 
 
 @pytest.mark.parametrize("path", ALL, ids=[p.stem for p in ALL])
+def test_code_cells_compile(path):
+    """Every notebook, slow or not, is at least valid Python in every code cell (no kernel needed)."""
+    nb = json.loads(path.read_text(encoding="utf-8"))
+    for i, c in enumerate(nb["cells"]):
+        if c["cell_type"] == "code":
+            src = "".join(c["source"])
+            lines = [ln for ln in src.splitlines() if not ln.lstrip().startswith(("%", "!"))]  # IPython magics
+            compile("\n".join(lines), f"{path.name}[cell {i}]", "exec")
+
+
+@pytest.mark.parametrize("path", RUNS)
 def test_notebook_runs(path, monkeypatch):
     nbclient = pytest.importorskip("nbclient", reason="nbclient is in the `test` extra: pip install -e .[test]")
     import nbformat
