@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
-from . import render, rundir, scene as scene_mod
+from . import render, rgbimage, rundir, scene as scene_mod
 from .errors import ConfigError
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
 
@@ -490,12 +490,11 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         truth = {b.filter: clean[k] - model.layouts[k].sky_counts_per_s
                  for k, b in enumerate(scene.bands)}
         for triple in scene.output.rgb:
-            r, g, bb = _rgb_channels(images, grids, triple)
-            # stretch from the noiseless light, so that faint arcs are not set by the noise
-            intensity = sum(_rgb_channels(truth, grids, triple)) / 3.0
-            top = float(np.percentile(intensity, 99.9)) or float(intensity.max()) or 1.0
-            io.save_rgb_png(out / f"rgb_{'-'.join(triple)}.png", r, g, bb,
-                            stretch=top * 6.0 / math.sinh(6.0), Q=6.0, minimum=0.0)
+            # stretch and colour balance from the noiseless light (faint arcs not set by the noise)
+            g0 = grids[triple[0]]
+            rgbimage.save_composite(out / f"rgb_{'-'.join(triple)}.png", _rgb_channels(images, grids, triple),
+                                    rgbimage.extent_of_grid(g0), reference=_rgb_channels(truth, grids, triple),
+                                    wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
     with prog.stage("high-resolution images"):
         hr_info = _write_hr(prep, out) if scene.output.hr else None
@@ -572,9 +571,16 @@ def _write_hr(prep: Prepared, out: Path):
             io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
                                 wcs=_wcs_for(model.hr_grid, scene), header=hdr)
     if len(names) >= 3:
-        io.save_rgb_png(hr_dir / "rgb_unlensed.png", *[unl[k] for k in range(3)])
+        rgb = rgbimage.hr_channel_names(names, waves, scene.output.rgb)  # red, green, blue
+        idx = [names.index(n) for n in rgb]
+        title = rgbimage.rgb_title(rgb, False, kind="high resolution, unlensed")
+        rgbimage.save_composite(hr_dir / "rgb_unlensed.png", [unl[k] for k in idx], rgbimage.extent_of_grid(sgrid),
+                                wcs=_wcs_for(sgrid, scene), title=title, frame="β", crop=True)
         if lensed is not None:
-            io.save_rgb_png(hr_dir / "rgb_lensed.png", *[lensed[k] for k in range(3)])
+            title = rgbimage.rgb_title(rgb, False, kind="high resolution, lensed")
+            rgbimage.save_composite(hr_dir / "rgb_lensed.png", [lensed[k] for k in idx],
+                                    rgbimage.extent_of_grid(model.hr_grid), wcs=_wcs_for(model.hr_grid, scene),
+                                    title=title)
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
 
 

@@ -10,7 +10,10 @@ draws what the run has:
 - lens_planes.png — lens plane (image + critical curves) and source plane
   (caustics, clumps, source centre); lensed runs only;
 - mosaic.png — every band, asinh stretch, with the unlensed source inset
-  at the same pixel scale (as the white squares of the paper's figures).
+  at the same pixel scale (as the white squares of the paper's figures);
+- paper_rgb.png — the paper's colour figure: HR lensed, HR convolved with a
+  band's PSF, the detector composites, the clump of interest circled
+  (paperfig.py).
 
 Matplotlib runs on the Agg backend (no display); every file is written via
 io.atomic_write.
@@ -144,6 +147,17 @@ def _extent(band):
     return (x0, x0 + nx * p, y0, y0 + ny * p)
 
 
+def _band_norm(band):
+    """Asinh from −1σ of the sky noise (black) to the brightest noiseless light (at least 20σ): the
+    sky reads dark grey and the source keeps its structure, whatever the band's depth."""
+    from astropy.visualization import AsinhStretch, ImageNormalize
+
+    sigma = float(np.sqrt(np.median(band["variance"])))
+    top = float(np.percentile(band["noiseless"] - band["sky"], 99.9))
+    top = max(top, 20.0 * sigma) if sigma > 0 else (top or 1.0)
+    return ImageNormalize(vmin=-1.0 * sigma, vmax=top, stretch=AsinhStretch(0.2))
+
+
 def plot_mosaic(bands, path):
     """All bands (image − sky, asinh), the unlensed source inset bottom-left at the same pixel scale."""
     plt = _pyplot()
@@ -155,7 +169,8 @@ def plot_mosaic(bands, path):
         ax.axis("off")
     for ax, b in zip(axes.ravel(), bands):
         img = b["image"] - b["sky"]
-        ax.imshow(img, origin="lower", cmap="gray", norm=asinh_norm(img), extent=_extent(b))
+        ax.imshow(img, origin="lower", cmap="gray", norm=_band_norm(b), extent=_extent(b),
+                  interpolation="nearest")
         ax.set_title(f"{b['filter']}  ({b['exptime_s']:.0f} s)", fontsize=9)
         ax.tick_params(labelsize=7)
         unl = b.get("unlensed")
@@ -175,14 +190,20 @@ def plot_mosaic(bands, path):
     return _save(fig, path)
 
 
-def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None, pixel_arcsec=None):
+def _critical_curves(lens, field, pixel_arcsec=None):
+    from .lensing.derived import critical_curves
+
+    (x0, x1), (y0, y1) = field
+    return critical_curves(lens, field, pixel_arcsec or max(x1 - x0, y1 - y0) / 400.0)
+
+
+def plot_lens_planes(lens, field, source_center, catalog, path, *, backdrop=None, pixel_arcsec=None, cc=None):
     """Lens plane with critical curves (over `backdrop`, a band dict) and source plane with caustics."""
-    from .lensing.derived import caustics, critical_curves
+    from .lensing.derived import caustics
 
     plt = _pyplot()
     (x0, x1), (y0, y1) = field
-    pixel_arcsec = pixel_arcsec or max(x1 - x0, y1 - y0) / 400.0
-    cc = critical_curves(lens, field, pixel_arcsec)
+    cc = cc if cc is not None else _critical_curves(lens, field, pixel_arcsec)
     ca = caustics(lens, cc)
     fig, (axl, axs) = plt.subplots(1, 2, figsize=(11, 5.2))
     if backdrop is not None:
@@ -230,6 +251,7 @@ def _rows_with(catalog, *columns):
 def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     """Make every figure the run supports; returns the PNG paths (in out_dir, default RUN/plots)."""
     from .analysis import _lens_from_summary, _read_catalog, band_data
+    from .paperfig import paper_figure_of_run
 
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").exists():
@@ -252,10 +274,16 @@ def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     bands.sort(key=lambda b: order.index(b["filter"]) if b["filter"] in order else len(order))
     lens = _lens_from_summary(summary, run_dir)
     field = summary.get("field_arcsec")
+    cc = None
     if lens is not None and field:
+        cc = _critical_curves(lens, field)
         center = (summary["scene"].get("source") or {}).get("center_arcsec", [0.0, 0.0])
         written.append(plot_lens_planes(lens, field, center, catalog, out / "lens_planes.png",
-                                        backdrop=bands[0] if bands else None))
+                                        backdrop=bands[0] if bands else None, cc=cc))
     if bands:
         written.append(plot_mosaic(bands, out / "mosaic.png"))
+    curves = [] if cc is None else list(cc["tangential"]) + list(cc["radial"])
+    paper = paper_figure_of_run(run_dir, out, curves=curves)
+    if paper is not None:
+        written.append(paper)
     return written

@@ -2,15 +2,19 @@
 
 import json
 import math
+import shutil
 import sys
 import tomllib
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from clumpylen_jax import scene as sc
 from clumpylen_jax.errors import ConfigError
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
 
 def minimal():
@@ -333,8 +337,9 @@ def test_lens_exactly_one_kind():
 
 def test_relative_files_resolve_against_scene_dir(tmp_path):
     (tmp_path / "maps").mkdir()
-    for name in ("ax.fits", "ay.fits", "psf.fits"):
-        (tmp_path / "maps" / name).write_bytes(b"")
+    for name, fixture in (("ax.fits", "lens_hff_x-arcsec-deflect.fits"), ("ay.fits", "lens_hff_y-arcsec-deflect.fits"),
+                          ("psf.fits", "psf_nircam_f200w_detsamp.fits")):  # real files, as a user's would be
+        shutil.copy(FIXTURES / fixture, tmp_path / "maps" / name)
     d = minimal()
     d["lens"] = {"z_lens": 0.3, "center_radec_deg": [10.0, -5.0],
                  "deflection": {"x": "maps/ax.fits", "y": "maps/ay.fits", "normalization": {"z_source": 9.0}}}

@@ -312,23 +312,3 @@ clumps_per_sample = 2
     assert np.all(start_err > 0) and np.median(fit_err) < np.median(start_err)
     pull = (t["fit_flux_F200W"] - t["true_flux_F200W"]) / t["err_flux_F200W"]
     assert np.all(np.abs(pull) < 5)
-
-
-@pytest.mark.slow
-def test_study_notebook_runs(monkeypatch):
-    """notebooks/study_completeness.ipynb, its code cells top to bottom (outputs stripped)."""
-    import json
-
-    import matplotlib
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    path = Path(__file__).resolve().parents[1] / "notebooks" / "study_completeness.ipynb"
-    nb = json.loads(path.read_text(encoding="utf-8"))
-    assert all(not c.get("outputs") for c in nb["cells"] if c["cell_type"] == "code")
-    ns = {"__name__": "__study_notebook__"}
-    for i, c in enumerate(nb["cells"]):
-        if c["cell_type"] == "code":
-            exec(compile("".join(c["source"]), f"{path.name}[cell {i}]", "exec"), ns)
-    plt.close("all")
-    assert ns["table"]["completeness"][-1] >= 0.8 and ns["ds"]["image"].shape[0] == 16
