@@ -12,7 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import clumpylen_jax  # noqa: F401  (x64)
+import clumpylen_jax  # noqa: E402
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax.inference import fisher_uncertainty, fit_map, make_data, make_state, parametrize
 from clumpylen_jax.inference.catalog import errors_state, fit_table
 from clumpylen_jax.inference.mcmc import run_nuts
