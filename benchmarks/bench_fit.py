@@ -19,7 +19,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax  # noqa: E402
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax.inference import fisher_uncertainty, fit_map, make_data, make_log_likelihood, make_state, parametrize
 from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands, toy_clumps, toy_model
 from clumpylen_jax.model import Accuracy

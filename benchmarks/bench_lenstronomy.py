@@ -58,7 +58,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-import clumpylen_jax  # noqa: E402,F401
+import clumpylen_jax  # noqa: E402
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax import profiles  # noqa: E402
 from clumpylen_jax.lensing.grid import DeflectionGrid  # noqa: E402
 from clumpylen_jax.model import Accuracy, Band, build_model  # noqa: E402

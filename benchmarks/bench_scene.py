@@ -25,7 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import equinox as eqx  # noqa: E402
 
-import clumpylen_jax  # noqa: E402,F401
+import clumpylen_jax  # noqa: E402
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax import pipeline, scene as scene_mod  # noqa: E402
 
 import _common as C  # noqa: E402

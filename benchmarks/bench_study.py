@@ -24,6 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+import clumpylen_jax
+
+clumpylen_jax.enable_float64()  # float64: the caller's choice
+
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results"
 

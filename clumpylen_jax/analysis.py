@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .constants import ARCSEC_PER_RAD
+
 __all__ = [
     "analyze_run",
     "band_data",
@@ -133,7 +135,7 @@ def default_aperture_radius_arcsec(band: dict, psf: str | None) -> float:
         except Exception:  # the instrument header spelling differs from the filter table's
             filt = load_filter(band["filter"])
         tel = "JWST" if "JWST" in band["telescope"].upper() else "HST"
-        fwhm = 1.03 * filt.pivot_wavelength_aa * 1e-10 / TELESCOPE_DIAMETER_M[tel] * 206264.806
+        fwhm = 1.03 * filt.pivot_wavelength_aa * 1e-10 / TELESCOPE_DIAMETER_M[tel] * ARCSEC_PER_RAD
     except Exception:  # an unknown filter: fall back to the no-PSF default
         return 0.1
     # A pixel-sampled PSF is about the diffraction core convolved with a pixel.

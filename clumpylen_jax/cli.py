@@ -335,6 +335,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run `clumpylen` with `argv` (default sys.argv[1:]); returns the exit status."""
+    from . import enable_float64
+
+    enable_float64()  # the command computes in float64 unless a scene asks for float32
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -14,9 +14,10 @@ import numpy as np
 from astropy import units as u
 from astropy.cosmology import FlatLambdaCDM
 
+from .constants import ARCSEC_PER_RAD
 from .errors import require
 
-_PC_PER_RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
+_PC_PER_RAD_TO_ARCSEC = ARCSEC_PER_RAD
 
 
 @functools.lru_cache(maxsize=32)

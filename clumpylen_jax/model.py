@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import convolve, noise, profiles, render, tiles
+from . import defaults as D
 from .errors import ConfigError, require
 from .lensing.linearised import (ClumpImages, FootprintIndex, bilinear_patch,
                                  image_magnifications, lensed_clumps,
@@ -110,7 +111,7 @@ class Accuracy:
 ACCURACY_PRESETS = {
     "fast": Accuracy(lens_subsampling=2, source_order=2, exact_core=5, psf_oversampling=3,
                      stamp_flux_fraction=0.999, source_flux_fraction=0.98),
-    "default": Accuracy(lens_subsampling=4, source_order=3, exact_core=5, psf_oversampling=5),
+    "default": Accuracy(),  # the class defaults are the default preset (one place)
     "high": Accuracy(lens_subsampling=8, source_order=4, exact_core=7, psf_oversampling=7,
                      source_mode="analytic", stamp_flux_fraction=0.99999,
                      source_flux_fraction=0.999, host_subsampling=True),
@@ -168,12 +169,7 @@ class _BandLayout:
 # ------------------------------------------------------------------ static helpers
 
 
-def _radius_enclosing(fraction, re_arcsec, n):
-    """Major-axis radius holding `fraction` of a Sérsic's light (numpy; build-time only)."""
-    from scipy.special import gammaincinv
-    n = np.asarray(n, float)
-    return np.asarray(re_arcsec, float) * (gammaincinv(2 * n, fraction)
-                                           / gammaincinv(2 * n, 0.5)) ** n
+_radius_enclosing = profiles.sersic_radius_enclosing_np  # numpy, build-time only
 
 
 def source_extent(source: Source, flux_fraction: float, stamp_flux_fraction: float):
@@ -741,8 +737,17 @@ def _psf_kernel_for(band: Band, sub_pixel_arcsec: float):
     return convolve.check_kernel(to_grid(psf, sub_pixel_arcsec), f"bands[{band.name}].psf")
 
 
+def require_float64_mode(dtype):
+    """ConfigError unless JAX's 64-bit mode is on when `dtype` is float64 (JAX would
+    otherwise compute in float32 without saying so)."""
+    if jnp.dtype(dtype) == jnp.float64 and not jax.config.read("jax_enable_x64"):
+        raise ConfigError("render.dtype", "float64",
+                          'JAX 64-bit mode on: call clumpylen_jax.enable_float64() first (the '
+                          'clumpylen command does), or use render.dtype = "float32"')
+
+
 def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
-                lens_pixel_arcsec: float = 0.0025, source_pixel_arcsec: float = 0.00025,
+                lens_pixel_arcsec: float = D.LENS_PIXEL_ARCSEC, source_pixel_arcsec: float = D.SOURCE_PIXEL_ARCSEC,
                 accuracy: Accuracy = Accuracy(), dtype=jnp.float64) -> SceneModel:
     """Make the forward model of a scene (static decisions happen here, once).
 
@@ -764,6 +769,7 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     require(source_pixel_arcsec > 0, "render.source_pixel_arcsec", source_pixel_arcsec,
             "a positive pixel scale (arcsec)")
     dtype = jnp.dtype(dtype)
+    require_float64_mode(dtype)
     center, radius = source_extent(source, accuracy.source_flux_fraction,
                                    accuracy.stamp_flux_fraction)
     has_clumps = source.clumps is not None and source.clumps.count > 0

@@ -260,7 +260,13 @@ def monochromatic_fnu(mass_msun, age_myr, *, wavelength_obs_um, z, metallicity=0
 
 
 def mag_to_counts_per_s(mag_ab, zeropoint_ab):
-    """Count rate (e⁻/s) of a source of AB magnitude mag_ab: 10^(−0.4 (m − ZP))."""
+    """Count rate (e⁻/s) of a source of AB magnitude mag_ab: 10^(−0.4 (m − ZP)).
+
+    Array-library agnostic: numpy (or Python numbers) in, numpy out (the pipeline's
+    build-time photometry, no JAX dispatch); JAX arrays in, JAX out (differentiable).
+    """
+    if not isinstance(mag_ab, jax.Array) and not isinstance(zeropoint_ab, jax.Array):
+        return 10.0 ** (-0.4 * (np.asarray(mag_ab, float) - np.asarray(zeropoint_ab, float)))
     return 10.0 ** (-0.4 * (jnp.asarray(mag_ab) - zeropoint_ab))
 
 

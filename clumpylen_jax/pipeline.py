@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
-from . import render, rgbimage, rundir, scene as scene_mod
+from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .errors import ConfigError
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
 
@@ -111,21 +111,14 @@ def build_lens(scene, cosmology=None):
                                     lens_center_radec_deg=L.center_radec_deg, z_lens=L.z_lens,
                                     z_source=scene.z_source, normalization=norm,
                                     cosmology=cosmology)
-    from .lensing import analytic
-    classes = {"sis": analytic.SIS, "sie": analytic.SIE, "nfw": analytic.NFW,
-               "dpie": analytic.DPIE, "shear": analytic.ExternalShear,
-               "sheet": analytic.MassSheet}
-    lenses = []
-    for comp in L.components:
-        params = {k: v for k, v in comp.params.items() if v is not None}
-        if comp.kind == "dpie" and "sigma0_kms" in params:
-            # E0 = 6π (σ0/c)² D_ls/D_s (Elíasdóttir et al. 2007), in arcsec
-            sigma = params.pop("sigma0_kms")
-            ratio = cosmo_mod.dls_ds(L.z_lens, scene.z_source, cosmology)
-            params["b0_arcsec"] = 6 * math.pi * (sigma / 299792.458) ** 2 * ratio * 206264.806
-        kwargs = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
-        lenses.append(classes[comp.kind](**kwargs))
-    return lenses[0] if len(lenses) == 1 else analytic.LensSum(tuple(lenses))
+    from .lensing.analytic import LensSum
+    from .lensing.clusters import lens_component
+    # a dpie given by σ0 takes the scene's D_ls/D_s (DPIE.from_sigma)
+    ratio = (cosmo_mod.dls_ds(L.z_lens, scene.z_source, cosmology)
+             if any("sigma0_kms" in c.params for c in L.components) else 1.0)
+    lenses = [lens_component({"kind": c.kind, **c.params}, f"lens.components[{i}]", dls_ds_ratio=ratio)
+              for i, c in enumerate(L.components)]
+    return lenses[0] if len(lenses) == 1 else LensSum(tuple(lenses))
 
 
 def _f(x, dtype):
@@ -184,8 +177,12 @@ def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
     return mags
 
 
-def _counts(mag, zp):
-    return 0.0 if not np.isfinite(mag) else float(10 ** (-0.4 * (mag - zp)))
+def _counts_per_s(mags, zps):
+    """Counts/s of AB magnitudes (arrays, per band); 0 where a magnitude is not finite (no light)."""
+    mags = np.asarray(mags, float)
+    ok = np.isfinite(mags)
+    counts = photometry.mag_to_counts_per_s(np.where(ok, mags, 0.0), np.asarray(zps, float))
+    return np.where(ok, counts, 0.0)
 
 
 def _fixed_shape_calls(fn, chunk=1 << 16):
@@ -235,9 +232,9 @@ def _sample_catalog(scene, bulge, disk, cosmology):
         fn = jax.jit(lambda x, y: render.disk_unit_brightness(host_tree, x, y, mean))
         geo = host_tree.sersic
     else:
-        fn = jax.jit(lambda x, y: render.sersic_unit_brightness(x, y, **render._sersic_kw(host_tree)))
+        fn = jax.jit(lambda x, y: render.sersic_component_brightness(host_tree, x, y))
         geo = host_tree
-    radius = float(model_mod._radius_enclosing(0.999, geo.re_arcsec, geo.n))
+    radius = float(profiles.sersic_radius_enclosing_np(0.999, geo.re_arcsec, geo.n))
     c = np.asarray(geo.center_arcsec, float)
     bbox = ((c[0] - radius, c[0] + radius), (c[1] - radius, c[1] + radius))
     rng = np.random.default_rng(scene.seed)
@@ -314,6 +311,7 @@ def _field(scene, lens, source, accuracy):
 def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> Prepared:
     """Population, photometry, lens, PSFs and the model of a scene (no rendering yet)."""
     progress = progress or _Progress(False, 1)
+    model_mod.require_float64_mode(scene.render.dtype)
     cosmology = _cosmology(scene)
     accuracy = _accuracy(scene)
     dtype = jnp.float32 if scene.render.dtype == "float32" else jnp.float64
@@ -329,19 +327,18 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         bulge = disk = clumps = None
         if src.bulge is not None:
             mags = _component_mags(src.bulge, host_masses["bulge"], filters, zps, scene, cosmology)
-            flux = [_counts(mags[f], zps[f]) for f in filters]
+            flux = _counts_per_s([mags[f] for f in filters], [zps[f] for f in filters])
             bulge = dataclasses.replace(bulge_t, flux=jnp.asarray(flux, jnp.float64))
         if src.disk is not None:
             mags = _component_mags(src.disk, host_masses["disk"], filters, zps, scene, cosmology)
-            flux = [_counts(mags[f], zps[f]) for f in filters]
+            flux = _counts_per_s([mags[f] for f in filters], [zps[f] for f in filters])
             disk = dataclasses.replace(
                 disk_t, sersic=dataclasses.replace(disk_t.sersic, flux=jnp.asarray(flux, jnp.float64)))
         if table is not None and len(table):
             cm = _clump_mags(scene, table, filters, cosmology)
             for k, f in enumerate(filters):
                 table[f"mag_{f}"] = cm[:, k]
-            flux = np.where(np.isfinite(cm), 10 ** (-0.4 * (cm - np.array([zps[f] for f in filters]))),
-                            0.0)
+            flux = _counts_per_s(cm, [zps[f] for f in filters])
             clumps = Clumps(
                 jnp.asarray(np.stack([table["beta1_arcsec"], table["beta2_arcsec"]], axis=1), float),
                 jnp.asarray(flux), jnp.asarray(np.asarray(table["re_arcsec"], float)),

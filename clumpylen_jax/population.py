@@ -31,6 +31,7 @@ import numpy as np
 from astropy import units as u
 from astropy.table import Table
 
+from . import defaults as D
 from .errors import ConfigError, require
 
 __all__ = [
@@ -109,21 +110,21 @@ class ClumpConfig:
         sersic_n: Sérsic index of every clump.
     """
 
-    cmf_slope: float = -2.0
-    cmf_m_cut_msun: float = 5.0e6
-    cmf_delta: float = 1.0
-    cmf_gamma: float = 1.0
-    cmf_m_min_msun: float = 1.0e4
-    cmf_m_max_msun: float = 1.0e7
-    size_norm_pc: float = 2.55
-    size_slope: float = 0.24
-    size_pivot_msun: float = 1.0e4
-    size_scatter_ln: float = 0.3
-    age_slope: float = -0.5
-    age_min_myr: float = 1.0
-    age_max_myr: float = 500.0
-    q_range: tuple[float, float] = (0.3, 1.0)
-    sersic_n: float = 0.5
+    cmf_slope: float = D.CMF["slope"]
+    cmf_m_cut_msun: float = D.CMF["m_cut_msun"]
+    cmf_delta: float = D.CMF["delta"]
+    cmf_gamma: float = D.CMF["gamma"]
+    cmf_m_min_msun: float = D.CMF["m_min_msun"]
+    cmf_m_max_msun: float = D.CMF["m_max_msun"]
+    size_norm_pc: float = D.SIZE["norm_pc"]
+    size_slope: float = D.SIZE["slope"]
+    size_pivot_msun: float = D.SIZE["pivot_msun"]
+    size_scatter_ln: float = D.SIZE["scatter_ln"]
+    age_slope: float = D.AGES["slope"]
+    age_min_myr: float = D.AGES["min_myr"]
+    age_max_myr: float = D.AGES["max_myr"]
+    q_range: tuple[float, float] = D.CLUMPS["q_range"]
+    sersic_n: float = D.CLUMPS["sersic_n"]
 
     def validate(self, prefix: str = "source.clumps") -> "ClumpConfig":
         """Raise ConfigError (naming the scene key) for any invalid setting."""
@@ -185,7 +186,7 @@ _SCENE_KEYS = {
     "ages": {"slope": "age_slope", "min_myr": "age_min_myr", "max_myr": "age_max_myr"},
 }
 
-SIZE_RELATIONS = ("brown-gnedin-2021",)
+SIZE_RELATIONS = D.SIZE_RELATIONS
 
 
 def clump_config_from_scene(section: Mapping, prefix: str = "source.clumps") -> ClumpConfig:
@@ -303,12 +304,12 @@ def sample_cmf_masses(
     rng: np.random.Generator,
     budget_msun: float,
     *,
-    slope: float = -2.0,
-    m_cut_msun: float = 5.0e6,
-    delta: float = 1.0,
-    gamma: float = 1.0,
-    m_min_msun: float = 1.0e4,
-    m_max_msun: float = 1.0e7,
+    slope: float = D.CMF["slope"],
+    m_cut_msun: float = D.CMF["m_cut_msun"],
+    delta: float = D.CMF["delta"],
+    gamma: float = D.CMF["gamma"],
+    m_min_msun: float = D.CMF["m_min_msun"],
+    m_max_msun: float = D.CMF["m_max_msun"],
     host_mass_msun: float | None = None,
 ) -> np.ndarray:
     """Clump masses [M☉] drawn from the CMF until they fill the mass budget.
@@ -363,10 +364,10 @@ def sample_sizes_pc(
     rng: np.random.Generator,
     mass_msun: np.ndarray,
     *,
-    norm_pc: float = 2.55,
-    slope: float = 0.24,
-    pivot_msun: float = 1.0e4,
-    scatter_ln: float = 0.3,
+    norm_pc: float = D.SIZE["norm_pc"],
+    slope: float = D.SIZE["slope"],
+    pivot_msun: float = D.SIZE["pivot_msun"],
+    scatter_ln: float = D.SIZE["scatter_ln"],
 ) -> np.ndarray:
     """Half-light radii [pc]: R_e = norm (M/pivot)^slope · exp(σ ε), ε ~ N(0, 1).
 
@@ -382,9 +383,9 @@ def sample_ages_myr(
     rng: np.random.Generator,
     size,
     *,
-    slope: float = -0.5,
-    min_myr: float = 1.0,
-    max_myr: float = 500.0,
+    slope: float = D.AGES["slope"],
+    min_myr: float = D.AGES["min_myr"],
+    max_myr: float = D.AGES["max_myr"],
 ) -> np.ndarray:
     """Ages [Myr] from p(t) ∝ t^α_t on [t_min, t_max] (continuous inverse CDF).
 

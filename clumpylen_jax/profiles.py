@@ -148,6 +148,15 @@ def sersic_brightness(x1, x2, *, flux, re_arcsec, n, q, pa_rad, center1, center2
     return flux * jnp.exp(sersic_log_norm(flux, re_arcsec, n, q, b) - b * s)
 
 
+def sersic_radius_enclosing_np(fraction, re_arcsec, n):
+    """Major-axis radius (arcsec) holding `fraction` of a Sérsic's light (numpy, scipy;
+    for build-time decisions such as stamp and field sizes)."""
+    from scipy.special import gammaincinv
+    n = np.asarray(n, float)
+    return np.asarray(re_arcsec, float) * (gammaincinv(2 * n, fraction)
+                                           / gammaincinv(2 * n, 0.5)) ** n
+
+
 def sersic_radius_enclosing(fraction, re_arcsec, n, b=None):
     """Major-axis radius (arcsec) enclosing `fraction` of a Sérsic's flux."""
     if b is None:

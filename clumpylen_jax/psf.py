@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
+from .constants import ARCSEC_PER_RAD
 from .errors import ConfigError, require
 
 __all__ = [
@@ -610,7 +611,7 @@ def diffraction_psf(
     band = load_filter(f"{instrument} {filter_name.strip()}" if is_bare else filter_name)
     diameter_m = TELESCOPE_DIAMETER_M[telescope]
     waves_m, weights = _band_sampling(np.asarray(band.wavelength_aa), np.asarray(band.throughput), n_wavelengths)
-    lam_over_d_arcsec = float(band.pivot_wavelength_aa) * 1e-10 / diameter_m * 206264.80624709636
+    lam_over_d_arcsec = float(band.pivot_wavelength_aa) * 1e-10 / diameter_m * ARCSEC_PER_RAD
     if size_arcsec is None:
         size_arcsec = 32.0 * lam_over_d_arcsec
     require(
@@ -624,7 +625,7 @@ def diffraction_psf(
     require(n_pix <= 2049, "psf_size_arcsec", size_arcsec, f"at most 2049 pixels of {pixel_arcsec} arcsec")
     # Sub-sample so that each computed point is ≤ λ_min/(4D): the binned values
     # are then pixel integrals, not point samples, even for coarse pixels.
-    lam_min_over_d = waves_m.min() / diameter_m * 206264.80624709636
+    lam_min_over_d = waves_m.min() / diameter_m * ARCSEC_PER_RAD
     sub = max(1, int(math.ceil(pixel_arcsec / (lam_min_over_d / 4.0) - 1e-9)))
 
     key_data = {

@@ -28,6 +28,11 @@ def sersic_unit_brightness(x1, x2, *, re_arcsec, n, q, pa_rad, center1, center2,
                                       pa_rad=pa_rad, center1=center1, center2=center2, b=b)
 
 
+def sersic_component_brightness(s: Sersic, x1, x2):
+    """Surface brightness (per arcsec²) of the Sérsic `s` scaled to unit flux, at (x1, x2)."""
+    return sersic_unit_brightness(x1, x2, **_sersic_kw(s))
+
+
 def _sersic_kw(s: Sersic):
     return dict(re_arcsec=s.re_arcsec, n=s.n, q=s.q, pa_rad=s.pa_rad,
                 center1=s.center_arcsec[0], center2=s.center_arcsec[1])

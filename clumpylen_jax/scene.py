@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
 
+from . import defaults as D
 from .errors import ConfigError
 
 __all__ = [
@@ -95,7 +96,7 @@ KNOWN_FILTERS = {
     ),
 }
 
-LENS_MODELS = ("macs0416-like", "a2744-like")
+LENS_MODELS = tuple(D.BUILTIN_LENSES)
 
 # Seeds: numpy's generators take any int >= 0, jax.random.key a signed 64-bit one.
 SEED_MAX = 2**63 - 1
@@ -103,33 +104,18 @@ SEED_MAX = 2**63 - 1
 # them fluxes overflow float32 (m < ZP - 96) or are nonsense for a galaxy
 AB_MAG_RANGE = (0.0, 99.0)
 
-SIZE_RELATIONS = ("brown-gnedin-2021",)
+SIZE_RELATIONS = D.SIZE_RELATIONS
 
 SFH_KINDS = ("constant", "burst")
 
-# Parameters of analytic lens components: name -> (required?, kind of value).
-# Kinds: "pos" (> 0), "nonneg" (>= 0), "q" (0 < q <= 1), "real", "pair".
-# Names are those of the classes in clumpylen_jax.lensing.analytic (SIS, SIE,
-# NFW, DPIE, ExternalShear, MassSheet), so that `Class(**params)` builds them;
-# values are for the scene's z_source (scale = 1). A dpie takes exactly one of
-# b0_arcsec or sigma0_kms (then DPIE.from_sigma with the scene's D_ls/D_s).
+# Parameters of analytic lens components: name -> (required?, kind of value), and their
+# defaults; from the one registry, clumpylen_jax.defaults.LENS_KINDS (values are for the
+# scene's z_source, scale = 1).
 LENS_COMPONENT_PARAMS: dict[str, dict[str, tuple[bool, str]]] = {
-    "sis": {"theta_e_arcsec": (True, "pos"), "center_arcsec": (False, "pair")},
-    "sie": {
-        "theta_e_arcsec": (True, "pos"), "q": (False, "q"), "pa_rad": (False, "real"),
-        "center_arcsec": (False, "pair"),
-    },
-    "nfw": {"kappa_s": (True, "pos"), "rs_arcsec": (True, "pos"), "center_arcsec": (False, "pair")},
-    "dpie": {
-        "b0_arcsec": (False, "pos"), "sigma0_kms": (False, "pos"), "rcore_arcsec": (False, "nonneg"),
-        "rcut_arcsec": (True, "pos"), "q": (False, "q"), "pa_rad": (False, "real"),
-        "center_arcsec": (False, "pair"),
-    },
-    "shear": {"gamma1": (False, "real"), "gamma2": (False, "real"), "center_arcsec": (False, "pair")},
-    "sheet": {"kappa": (True, "real"), "center_arcsec": (False, "pair")},
-}
-_LENS_PARAM_DEFAULTS = {"q": 1.0, "pa_rad": 0.0, "center_arcsec": (0.0, 0.0), "rcore_arcsec": 0.0,
-                        "gamma1": 0.0, "gamma2": 0.0, "b0_arcsec": None, "sigma0_kms": None}
+    kind: {name: (req, vkind) for name, (req, vkind, _) in schema.items()}
+    for kind, (_, schema) in D.LENS_KINDS.items()}
+_LENS_PARAM_DEFAULTS = {name: default for _, schema in D.LENS_KINDS.values()
+                        for name, (_, _, default) in schema.items()}
 
 # Accuracy presets, the knobs a scene file can name: `subsampling` is the
 # Gauss–Legendre order per lens-plane pixel (rays per pixel = its square; no
@@ -238,44 +224,44 @@ class Disk(Sersic):
 class CMF:
     """Clump mass function f(M) ∝ M^slope exp[-delta (M/m_cut)^gamma] on [m_min, m_max]."""
 
-    slope: float = -2.0
-    m_cut_msun: float = 5.0e6
-    delta: float = 1.0
-    gamma: float = 1.0
-    m_min_msun: float = 1.0e4
-    m_max_msun: float = 1.0e7
+    slope: float = D.CMF["slope"]
+    m_cut_msun: float = D.CMF["m_cut_msun"]
+    delta: float = D.CMF["delta"]
+    gamma: float = D.CMF["gamma"]
+    m_min_msun: float = D.CMF["m_min_msun"]
+    m_max_msun: float = D.CMF["m_max_msun"]
 
 
 @dataclass(frozen=True)
 class SizeRelation:
     """Clump mass–size relation with a lognormal scatter (natural-log sigma)."""
 
-    relation: str = "brown-gnedin-2021"
-    scatter_ln: float = 0.3
+    relation: str = D.SIZE["relation"]
+    scatter_ln: float = D.SIZE["scatter_ln"]
 
 
 @dataclass(frozen=True)
 class AgeDistribution:
     """Clump ages: dN/dt ∝ t^slope on [min_myr, max_myr]."""
 
-    slope: float = -0.5
-    min_myr: float = 1.0
-    max_myr: float = 500.0
+    slope: float = D.AGES["slope"]
+    min_myr: float = D.AGES["min_myr"]
+    max_myr: float = D.AGES["max_myr"]
 
 
 @dataclass(frozen=True)
 class Clumps:
     """Stellar clumps: sampled (mass budget = mass_fraction × host mass) or read from `catalog`."""
 
-    mass_fraction: float = 0.8
-    host: str = "disk"
+    mass_fraction: float = D.CLUMPS["mass_fraction"]
+    host: str = D.CLUMPS["host"]
     cmf: CMF = field(default_factory=CMF)
     size: SizeRelation = field(default_factory=SizeRelation)
     ages: AgeDistribution = field(default_factory=AgeDistribution)
-    sfh: SFH = field(default_factory=lambda: SFH("constant", 10.0))
-    metallicity: float = 0.004
-    sersic_n: float = 0.5
-    q_range: tuple[float, float] = (0.3, 1.0)
+    sfh: SFH = field(default_factory=lambda: SFH(D.CLUMPS["sfh_kind"], D.CLUMPS["sfh_duration_myr"]))
+    metallicity: float = D.CLUMPS["metallicity"]
+    sersic_n: float = D.CLUMPS["sersic_n"]
+    q_range: tuple[float, float] = D.CLUMPS["q_range"]
     catalog: str | None = None  # absolute path
 
 
@@ -330,23 +316,23 @@ class Field:
 class Accuracy:
     """Resolved accuracy knobs; `preset` is the preset they start from."""
 
-    preset: str = "default"
-    subsampling: int = 3
-    psf_oversampling: int = 3
-    source_mode: str = "hybrid"
-    linearise_tolerance: float = 0.05
-    source_flux_fraction: float = 0.99
+    preset: str = D.ACCURACY_PRESET
+    subsampling: int = ACCURACY_PRESETS[D.ACCURACY_PRESET]["subsampling"]
+    psf_oversampling: int = ACCURACY_PRESETS[D.ACCURACY_PRESET]["psf_oversampling"]
+    source_mode: str = ACCURACY_PRESETS[D.ACCURACY_PRESET]["source_mode"]
+    linearise_tolerance: float = ACCURACY_PRESETS[D.ACCURACY_PRESET]["linearise_tolerance"]
+    source_flux_fraction: float = ACCURACY_PRESETS[D.ACCURACY_PRESET]["source_flux_fraction"]
 
 
 @dataclass(frozen=True)
 class Render:
     """Resolutions (arcsec/pixel), lens-plane field, accuracy knobs, dtype."""
 
-    source_pixel_arcsec: float = 0.0005
-    lens_pixel_arcsec: float = 0.0025
+    source_pixel_arcsec: float = D.SOURCE_PIXEL_ARCSEC
+    lens_pixel_arcsec: float = D.LENS_PIXEL_ARCSEC
     field_arcsec: Field | None = None
     accuracy: Accuracy = field(default_factory=Accuracy)
-    dtype: str = "float64"
+    dtype: str = D.DTYPE
 
 
 @dataclass(frozen=True)
@@ -699,12 +685,12 @@ def _clumps(t, p, source_tables: dict, base_dir, band_names) -> Clumps:
         c = _table(t["cmf"], cp)
         _check_keys(c, cp, _CMF_KEYS)
         cmf = CMF(
-            slope=_float(c, "slope", cp, -2.0),
-            m_cut_msun=_float(c, "m_cut_msun", cp, 5.0e6, lo=0, lo_open=True),
-            delta=_float(c, "delta", cp, 1.0, lo=0),
-            gamma=_float(c, "gamma", cp, 1.0, lo=0, lo_open=True),
-            m_min_msun=_float(c, "m_min_msun", cp, 1.0e4, lo=0, lo_open=True),
-            m_max_msun=_float(c, "m_max_msun", cp, 1.0e7, lo=0, lo_open=True),
+            slope=_float(c, "slope", cp, cmf.slope),
+            m_cut_msun=_float(c, "m_cut_msun", cp, cmf.m_cut_msun, lo=0, lo_open=True),
+            delta=_float(c, "delta", cp, cmf.delta, lo=0),
+            gamma=_float(c, "gamma", cp, cmf.gamma, lo=0, lo_open=True),
+            m_min_msun=_float(c, "m_min_msun", cp, cmf.m_min_msun, lo=0, lo_open=True),
+            m_max_msun=_float(c, "m_max_msun", cp, cmf.m_max_msun, lo=0, lo_open=True),
         )
         if not cmf.m_min_msun < cmf.m_max_msun:
             raise ConfigError(_join(cp, "m_max_msun"), cmf.m_max_msun, f"> m_min_msun = {cmf.m_min_msun}")
@@ -713,23 +699,24 @@ def _clumps(t, p, source_tables: dict, base_dir, band_names) -> Clumps:
         sp = _join(p, "size")
         s = _table(t["size"], sp)
         _check_keys(s, sp, ("relation", "scatter_ln"))
-        size = SizeRelation(_choice(s, "relation", sp, SIZE_RELATIONS, "brown-gnedin-2021"),
-                            _float(s, "scatter_ln", sp, 0.3, lo=0))
+        size = SizeRelation(_choice(s, "relation", sp, SIZE_RELATIONS, size.relation),
+                            _float(s, "scatter_ln", sp, size.scatter_ln, lo=0))
     ages = AgeDistribution()
     if "ages" in t:
         gp = _join(p, "ages")
         g = _table(t["ages"], gp)
         _check_keys(g, gp, ("slope", "min_myr", "max_myr"))
-        ages = AgeDistribution(_float(g, "slope", gp, -0.5),
-                               _float(g, "min_myr", gp, 1.0, lo=0, lo_open=True),
-                               _float(g, "max_myr", gp, 500.0, lo=0, lo_open=True))
+        ages = AgeDistribution(_float(g, "slope", gp, ages.slope),
+                               _float(g, "min_myr", gp, ages.min_myr, lo=0, lo_open=True),
+                               _float(g, "max_myr", gp, ages.max_myr, lo=0, lo_open=True))
         if not ages.min_myr < ages.max_myr:   # the age power law needs a range
             raise ConfigError(_join(gp, "max_myr"), ages.max_myr, f"> min_myr = {ages.min_myr}")
-    q_range = _pair(t, "q_range", p, (0.3, 1.0))
+    dflt = Clumps()
+    q_range = _pair(t, "q_range", p, dflt.q_range)
     if not 0 < q_range[0] <= q_range[1] <= 1:
         raise ConfigError(_join(p, "q_range"), list(q_range), "[q_min, q_max] with 0 < q_min <= q_max <= 1")
     catalog = _file(t, "catalog", p, base_dir, None)
-    host = _choice(t, "host", p, ("disk", "bulge"), "disk")
+    host = _choice(t, "host", p, ("disk", "bulge"), dflt.host)
     if catalog is None:
         # Sampling needs a host: its light places the clumps and its mass sets the budget.
         if host not in source_tables:
@@ -740,11 +727,11 @@ def _clumps(t, p, source_tables: dict, base_dir, band_names) -> Clumps:
     else:
         _check_catalog(catalog, _join(p, "catalog"), band_names)
     return Clumps(
-        mass_fraction=_float(t, "mass_fraction", p, 0.8, lo=0, hi=1),
+        mass_fraction=_float(t, "mass_fraction", p, dflt.mass_fraction, lo=0, hi=1),
         host=host, cmf=cmf, size=size, ages=ages,
-        sfh=_sfh(t, "sfh", p, SFH("constant", 10.0)),
-        metallicity=_float(t, "metallicity", p, 0.004, lo=0, lo_open=True, hi=0.1),
-        sersic_n=_float(t, "sersic_n", p, 0.5, lo=0.2, hi=10),
+        sfh=_sfh(t, "sfh", p, dflt.sfh),
+        metallicity=_float(t, "metallicity", p, dflt.metallicity, lo=0, lo_open=True, hi=0.1),
+        sersic_n=_float(t, "sersic_n", p, dflt.sersic_n, lo=0.2, hi=10),
         q_range=q_range,
         catalog=catalog,
     )
@@ -873,12 +860,12 @@ def _render(t) -> Render:
         _check_keys(f, fp, ("x", "y"))
         fld = Field(x=_pair(f, "x", fp, increasing=True), y=_pair(f, "y", fp, increasing=True))
     dtype = _choice(t, "dtype", p, DTYPES, None)
-    acc_value = t.get("accuracy", "default")
+    acc_value = t.get("accuracy", D.ACCURACY_PRESET)
     ap = "render.accuracy"
     if isinstance(acc_value, dict):
         a = acc_value
         _check_keys(a, ap, _ACCURACY_KEYS)
-        preset = _choice(a, "preset", ap, tuple(ACCURACY_PRESETS), "default")
+        preset = _choice(a, "preset", ap, tuple(ACCURACY_PRESETS), D.ACCURACY_PRESET)
         base = ACCURACY_PRESETS[preset]
         acc = Accuracy(
             preset=preset,
@@ -901,14 +888,14 @@ def _render(t) -> Render:
                 raise ConfigError("render.accuracy.dtype", acc_dtype, f'the same as render.dtype = "{dtype}"')
             dtype = acc_dtype
     else:
-        preset = _choice(t, "accuracy", p, tuple(ACCURACY_PRESETS), "default")
+        preset = _choice(t, "accuracy", p, tuple(ACCURACY_PRESETS), D.ACCURACY_PRESET)
         acc = Accuracy(preset=preset, **ACCURACY_PRESETS[preset])
     return Render(
-        source_pixel_arcsec=_float(t, "source_pixel_arcsec", p, 0.0005, lo=0, lo_open=True),
-        lens_pixel_arcsec=_float(t, "lens_pixel_arcsec", p, 0.0025, lo=0, lo_open=True),
+        source_pixel_arcsec=_float(t, "source_pixel_arcsec", p, D.SOURCE_PIXEL_ARCSEC, lo=0, lo_open=True),
+        lens_pixel_arcsec=_float(t, "lens_pixel_arcsec", p, D.LENS_PIXEL_ARCSEC, lo=0, lo_open=True),
         field_arcsec=fld,
         accuracy=acc,
-        dtype=dtype or "float64",
+        dtype=dtype or D.DTYPE,
     )
 
 

@@ -36,7 +36,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import ndimage, optimize  # noqa: E402
 
-import clumpylen_jax  # noqa: E402,F401
+import clumpylen_jax  # noqa: E402
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax.lensing import DPIE, ExternalShear, LensSum, find_images, grid_lensing_quantities  # noqa: E402
 from clumpylen_jax.lensing import with_scale  # noqa: E402
 from clumpylen_jax.lensing._distances import dls_ds  # noqa: E402

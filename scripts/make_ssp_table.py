@@ -185,7 +185,10 @@ def _report(out, wav_aa, st, ages_yr, iage, lum, edges):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
     import jax.numpy as jnp
 
+    import clumpylen_jax
     from clumpylen_jax.sps import L_SUN_ERG_S, sfh_weights
+
+    clumpylen_jax.enable_float64()  # the check runs in float64, as the package's default
 
     full = st["ZMET_0.200ZSOL"].data.astype(float)
     i1500 = np.argmin(np.abs(wav_aa - 1500.0))

@@ -7,6 +7,11 @@ hand (``HYPOTHESIS_PROFILE=thorough pytest tests/test_hard_cases.py``).
 
 import os
 
+import clumpylen_jax
+
+# float64 is the caller's choice (clumpylen_jax.enable_float64); the tests run with it on
+clumpylen_jax.enable_float64()
+
 try:
     from hypothesis import HealthCheck, settings
 except ImportError:  # hypothesis is a test extra; tests that need it skip

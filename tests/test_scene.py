@@ -104,7 +104,7 @@ def test_defaults_filled():
     assert s.cosmology == sc.Cosmology(70.0, 0.3)
     assert s.source.bulge.n == 4.0 and s.source.disk.n == 1.0 and s.source.disk.q == 1.0
     assert s.source.disk.arms.scale_arcsec == pytest.approx(0.3 / 1.678)
-    assert s.render.source_pixel_arcsec == 0.0005 and s.render.lens_pixel_arcsec == 0.0025
+    assert s.render.source_pixel_arcsec == 0.00025 and s.render.lens_pixel_arcsec == 0.0025
     assert s.render.accuracy.preset == "default" and s.render.dtype == "float64"
     assert s.output.noise and s.output.unlensed
     assert all(b.psf == "diffraction" and b.psf_effective is False for b in s.bands)
@@ -416,3 +416,52 @@ def test_to_toml_escapes_and_round_trips():
     d = {"scene": {"name": 'odd "name"\\ with\ttab', "x": 1.5e-9, "big": 2.0e12, "n": -3, "ok": True},
          "t": [{"a": [1, 2], "b": {"c": "d"}}, {"a": []}]}
     assert tomllib.loads(sc.to_toml(d)) == d
+
+
+def test_scene_defaults_are_the_python_api_defaults():
+    """One registry (clumpylen_jax.defaults): a scene file that omits a setting and a
+    Python call that omits it get the same value."""
+    import inspect
+
+    from clumpylen_jax import model, population
+
+    s = sc.scene_from_dict(minimal())
+    build = inspect.signature(model.build_model).parameters
+    assert s.render.source_pixel_arcsec == build["source_pixel_arcsec"].default
+    assert s.render.lens_pixel_arcsec == build["lens_pixel_arcsec"].default
+    acc, api = sc.Accuracy(), model.Accuracy()
+    assert (acc.subsampling, acc.psf_oversampling, acc.source_mode, acc.linearise_tolerance,
+            acc.source_flux_fraction) == (api.lens_subsampling, api.psf_oversampling, api.source_mode,
+                                          api.linearise_tolerance, api.source_flux_fraction)
+    assert s.render.accuracy == acc
+    cmf, cfg = sc.CMF(), population.ClumpConfig()
+    assert (cmf.slope, cmf.m_cut_msun, cmf.delta, cmf.gamma, cmf.m_min_msun, cmf.m_max_msun) == (
+        cfg.cmf_slope, cfg.cmf_m_cut_msun, cfg.cmf_delta, cfg.cmf_gamma, cfg.cmf_m_min_msun,
+        cfg.cmf_m_max_msun)
+    sample = inspect.signature(population.sample_cmf_masses).parameters
+    assert sample["slope"].default == cmf.slope and sample["m_max_msun"].default == cmf.m_max_msun
+
+
+def test_lens_components_build_through_the_one_registry():
+    """pipeline.build_lens builds scene components with lensing.clusters.lens_component
+    (defaults.LENS_KINDS): a σ0-given dPIE is DPIE.from_sigma with the scene's D_ls/D_s,
+    b0 = 6π (σ0/c)² D_ls/D_s in arcsec (Elíasdóttir et al. 2007)."""
+    import jax
+    import jax.numpy as jnp
+
+    from clumpylen_jax import cosmology, pipeline
+    from clumpylen_jax.constants import ARCSEC_PER_RAD, C_KMS
+    from clumpylen_jax.lensing import DPIE, LensSum
+
+    d = minimal()
+    d["lens"]["components"] = [{"kind": "dpie", "sigma0_kms": 300.0, "rcore_arcsec": 0.1, "rcut_arcsec": 20.0,
+                                "q": 0.7}, {"kind": "shear", "gamma1": 0.05}]
+    s = sc.scene_from_dict(d)
+    lens = pipeline.build_lens(s)
+    assert isinstance(lens, LensSum) and isinstance(lens.lenses[0], DPIE)
+    ratio = cosmology.dls_ds(s.lens.z_lens, s.z_source, pipeline._cosmology(s))
+    b0 = 6 * math.pi * (300.0 / C_KMS) ** 2 * ARCSEC_PER_RAD * ratio
+    ref = DPIE(b0, 0.1, 20.0, 0.7, 0.0, jnp.zeros(2))
+    t1, t2 = jnp.array([0.3, -1.2, 4.0]), jnp.array([0.9, 0.2, -2.5])
+    ours, expect = jax.jit(lambda a, b: (lens.lenses[0].deflection(a, b), ref.deflection(a, b)))(t1, t2)
+    np.testing.assert_allclose(ours, expect, rtol=1e-12)

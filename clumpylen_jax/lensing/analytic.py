@@ -24,6 +24,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..constants import ARCSEC_PER_RAD, C_KMS
+
 # Below this e² = 1 − q², arctan(e u)/e and artanh(e u)/e use their series
 # (error ~ e⁴ u⁵/5 < 1e-12 relative for |u| ≤ 1).
 _E2_SERIES = 1e-6
@@ -246,9 +248,8 @@ class DPIE(_Lens):
     @staticmethod
     def from_sigma(sigma0_kms, rcore_arcsec, rcut_arcsec, q, pa_rad, center_arcsec, dls_ds=1.0):
         """Build from Lenstool's fiducial velocity dispersion σ0 (km/s): b0 = 6π (σ0/c)² D_ls/D_s."""
-        c_kms = 299792.458
-        b0_rad = 6.0 * jnp.pi * (jnp.asarray(sigma0_kms) / c_kms) ** 2
-        b0 = b0_rad * (180.0 / jnp.pi * 3600.0)
+        b0_rad = 6.0 * jnp.pi * (jnp.asarray(sigma0_kms) / C_KMS) ** 2
+        b0 = b0_rad * ARCSEC_PER_RAD
         return DPIE(b0, rcore_arcsec, rcut_arcsec, q, pa_rad, jnp.asarray(center_arcsec), dls_ds)
 
     def _deflection(self, theta1, theta2):

@@ -16,21 +16,13 @@ from importlib import resources
 
 import jax.numpy as jnp
 
+from .. import defaults as D
 from ..errors import ConfigError
+from . import analytic
 from ._distances import dls_ds
-from .analytic import DPIE, NFW, SIE, SIS, ExternalShear, LensSum, MassSheet
+from .analytic import DPIE, LensSum
 
-_BUILTINS = {"macs0416-like": "lens_macs0416_like.json", "a2744-like": "lens_abell2744_like.json"}
-
-# kind → (class, required keys in constructor order, optional keys with defaults)
-_KINDS = {
-    "sis": (SIS, ("theta_e_arcsec", "center_arcsec"), {}),
-    "sie": (SIE, ("theta_e_arcsec", "q", "pa_rad", "center_arcsec"), {}),
-    "nfw": (NFW, ("kappa_s", "rs_arcsec", "center_arcsec"), {}),
-    "dpie": (DPIE, ("b0_arcsec", "rcore_arcsec", "rcut_arcsec", "q", "pa_rad", "center_arcsec"), {}),
-    "shear": (ExternalShear, ("gamma1", "gamma2"), {"center_arcsec": (0.0, 0.0)}),
-    "sheet": (MassSheet, ("kappa",), {"center_arcsec": (0.0, 0.0)}),
-}
+_BUILTINS = D.BUILTIN_LENSES
 
 
 def builtin_names():
@@ -38,39 +30,42 @@ def builtin_names():
     return sorted(_BUILTINS)
 
 
-def lens_component(spec: dict, where: str = "lens component"):
+def lens_component(spec: dict, where: str = "lens component", dls_ds_ratio: float = 1.0):
     """One analytic lens from a mapping such as {"kind": "sis", "theta_e_arcsec": 1.0, "center_arcsec": [0, 0]}.
 
-    Kinds and keys: sis (theta_e_arcsec, center_arcsec), sie (theta_e_arcsec, q,
-    pa_rad, center_arcsec), nfw (kappa_s, rs_arcsec, center_arcsec), dpie
-    (b0_arcsec, rcore_arcsec, rcut_arcsec, q, pa_rad, center_arcsec), shear
-    (gamma1, gamma2[, center_arcsec]), sheet (kappa[, center_arcsec]).
+    Kinds, keys and defaults: `clumpylen_jax.defaults.LENS_KINDS` (sis: theta_e_arcsec;
+    sie: theta_e_arcsec, q, pa_rad; nfw: kappa_s, rs_arcsec; dpie: b0_arcsec or
+    sigma0_kms, rcore_arcsec, rcut_arcsec, q, pa_rad; shear: gamma1, gamma2; sheet:
+    kappa; every kind: center_arcsec). A dpie given by sigma0_kms is built by
+    `DPIE.from_sigma` with `dls_ds_ratio` (D_ls/D_s) as its scale.
     """
     if not isinstance(spec, dict) or "kind" not in spec:
         raise ConfigError(where, spec, 'a table with "kind" and the parameters of that kind')
     kind = spec["kind"]
-    if kind not in _KINDS:
-        raise ConfigError(f"{where}.kind", kind, "one of " + ", ".join(sorted(_KINDS)))
-    cls, required, optional = _KINDS[kind]
-    extra = set(spec) - set(required) - set(optional) - {"kind"}
+    if kind not in D.LENS_KINDS:
+        raise ConfigError(f"{where}.kind", kind, "one of " + ", ".join(sorted(D.LENS_KINDS)))
+    cls_name, schema = D.LENS_KINDS[kind]
+    extra = set(spec) - set(schema) - {"kind"}
     if extra:
-        raise ConfigError(f"{where}", sorted(extra)[0], f"keys of a {kind}: {', '.join(required + tuple(optional))}")
-    missing = [k for k in required if k not in spec]
+        raise ConfigError(f"{where}", sorted(extra)[0], f"keys of a {kind}: {', '.join(schema)}")
+    missing = [k for k, (required, _, _) in schema.items() if required and k not in spec]
     if missing:
         raise ConfigError(f"{where}.{missing[0]}", None, f"a value (required for kind {kind!r})")
-    args = []
-    for k in required:
-        v = spec[k]
-        if k == "center_arcsec":
-            if len(v) != 2:
-                raise ConfigError(f"{where}.{k}", v, "[θ1, θ2] in arcsec")
-        args.append(jnp.asarray(v, dtype=float))
-    kw = {k: jnp.asarray(spec.get(k, d), dtype=float) for k, d in optional.items()}
-    if kind == "dpie" and not (0 <= float(spec["rcore_arcsec"]) < float(spec["rcut_arcsec"])):
-        raise ConfigError(f"{where}.rcore_arcsec", spec["rcore_arcsec"], "0 <= rcore_arcsec < rcut_arcsec")
-    if kind in ("sie", "dpie") and not 0 < float(spec["q"]) <= 1:
-        raise ConfigError(f"{where}.q", spec["q"], "0 < q <= 1")
-    return cls(*args, **kw)
+    params = {k: spec.get(k, default) for k, (_, _, default) in schema.items()}
+    params = {k: v for k, v in params.items() if v is not None}
+    if "center_arcsec" in params and len(params["center_arcsec"]) != 2:
+        raise ConfigError(f"{where}.center_arcsec", params["center_arcsec"], "[θ1, θ2] in arcsec")
+    if kind == "dpie":
+        if not (0 <= float(params["rcore_arcsec"]) < float(params["rcut_arcsec"])):
+            raise ConfigError(f"{where}.rcore_arcsec", params["rcore_arcsec"], "0 <= rcore_arcsec < rcut_arcsec")
+        if ("b0_arcsec" in params) == ("sigma0_kms" in params):
+            raise ConfigError(where, spec, "exactly one of b0_arcsec (arcsec) or sigma0_kms (km/s)")
+    if kind in ("sie", "dpie") and not 0 < float(params["q"]) <= 1:
+        raise ConfigError(f"{where}.q", params["q"], "0 < q <= 1")
+    kw = {k: jnp.asarray(v, dtype=float) for k, v in params.items()}
+    if "sigma0_kms" in kw:
+        return DPIE.from_sigma(dls_ds=dls_ds_ratio, **kw)
+    return getattr(analytic, cls_name)(**kw)
 
 
 def lens_from_components(components, scale=1.0):

@@ -25,6 +25,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from ..constants import ARCSEC_PER_RAD
 from ..errors import ConfigError
 from ._distances import dls_ds
 from .grid import DeflectionGrid
@@ -48,8 +49,7 @@ def tan_project_arcsec(ra_deg, dec_deg, ra0_deg, dec0_deg):
     cosc = np.sin(dec0) * np.sin(dec) + np.cos(dec0) * np.cos(dec) * np.cos(dra)
     xi = np.cos(dec) * np.sin(dra) / cosc
     eta = (np.cos(dec0) * np.sin(dec) - np.sin(dec0) * np.cos(dec) * np.cos(dra)) / cosc
-    rad2arcsec = 180.0 / np.pi * 3600.0
-    return -xi * rad2arcsec, eta * rad2arcsec
+    return -xi * ARCSEC_PER_RAD, eta * ARCSEC_PER_RAD
 
 
 def _read_image(path, what):

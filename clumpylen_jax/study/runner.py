@@ -44,19 +44,21 @@ def enable_compilation_cache(path: str) -> None:
     jax.config.update("jax_compilation_cache_dir", path)
     # the study's programs compile in seconds: cache every one that takes over 0.2 s
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-    import clumpylen_jax  # noqa: F401  (float64 before any array)
 
 
 def _plugin(path: str):
     from distributed.diagnostics.plugin import WorkerPlugin
 
     class JaxCache(WorkerPlugin):
-        """Sets the shared compilation cache on every worker, present and future."""
+        """Sets the shared compilation cache and float64 (as the CLI does) on every worker."""
 
         name = "clumpylen-jax-cache"
 
         def setup(self, worker):
+            from .. import enable_float64
+
             enable_compilation_cache(path)
+            enable_float64()  # a worker is our process: compute as `clumpylen` does
 
     return JaxCache()
 
