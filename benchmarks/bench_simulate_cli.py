@@ -88,6 +88,8 @@ def main(argv=None):
                     help="also run with --no-cache and compare the images bit for bit")
     ap.add_argument("--reference", type=Path, help="an earlier run's output folder to compare with")
     ap.add_argument("--keep", type=Path, help="keep the output folders here")
+    ap.add_argument("--results", default="simulate_cli",
+                    help="name of the result files under benchmarks/results/")
     args = ap.parse_args(argv)
 
     work = Path(tempfile.mkdtemp(prefix="bench_simulate_cli_"))
@@ -137,8 +139,8 @@ def main(argv=None):
                    targets_s=TARGETS, met={k: med[k] < TARGETS[k] for k in TARGETS},
                    images_identical_between_runs=identical, reference=ref,
                    cache_bytes=cache_bytes, fits_hdus=len(first), demo_tail=tails)
-    C.write_json("simulate_cli", payload)
-    C.write_text("simulate_cli.md", markdown(payload))
+    C.write_json(args.results, payload)
+    C.write_text(f"{args.results}.md", markdown(payload))
     print(markdown(payload))
 
 
@@ -154,7 +156,7 @@ def markdown(p):
              f"{'met' if p['met']['cold'] else 'NOT met'}), warm "
              f"{p['median_wall_s']['warm']:.1f} s (target < 10 s: "
              f"{'met' if p['met']['warm'] else 'NOT met'}); warm / cold = "
-             f"{p['warm_over_cold']:.2f}. Cache after one run: {p['cache_bytes'] / 2**20:.0f} MiB.",
+             f"{p['warm_over_cold']:.2f}. Cache after one run: {p['cache_bytes'] / 2**20:.1f} MiB.",
              "", f"FITS data identical across runs ({p['fits_hdus']} HDUs): "
              + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in
                          p["images_identical_between_runs"].items())]
