@@ -3,7 +3,7 @@
     clumpylen scenes                         built-in scenes, one line each
     clumpylen show NAME [--resolved]         a scene as TOML, to start from
     clumpylen validate SCENE                 check a scene; print it resolved and its stages
-    clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots]
+    clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots] [--no-cache]
     clumpylen plot DIR                       figures of a finished run
     clumpylen analyze DIR                    S/N and limiting magnitudes of a finished run
 
