@@ -1,6 +1,6 @@
 """Run every benchmark of issue 7 and write their results under benchmarks/results/.
 
-Usage: ``python benchmarks/run_all.py [--quick] [--only accuracy,lenstronomy,scene,scaling,paper_lens]``.
+Usage: ``python benchmarks/run_all.py [--quick] [--only accuracy,lenstronomy,scene,scaling,paper_lens,simulate_cli]``.
 Each script also runs on its own (see benchmarks/README.md). bench_fit.py (likelihood +
 gradient cost) belongs to the inference benchmarks and runs separately.
 """
@@ -24,9 +24,11 @@ JOBS = {
     "scene": ("bench_scene.py", [[]]),
     "scaling": ("bench_scaling.py", [[]]),
     "paper_lens": ("bench_paper_lens.py", [[]]),
+    "simulate_cli": ("bench_simulate_cli.py", [["--check"]]),
 }
 QUICK = {"accuracy": [["--quick"]], "lenstronomy": [["--quick"]],
-         "scene": [["--settings", "as-is"]], "scaling": [["--quick"]], "paper_lens": [[]]}
+         "scene": [["--settings", "as-is"]], "scaling": [["--quick"]], "paper_lens": [[]],
+         "simulate_cli": [[]]}
 
 
 def main(argv=None):

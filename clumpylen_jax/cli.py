@@ -3,7 +3,7 @@
     clumpylen scenes                         built-in scenes, one line each
     clumpylen show NAME [--resolved]         a scene as TOML, to start from
     clumpylen validate SCENE                 check a scene; print it resolved and its stages
-    clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots]
+    clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots] [--no-cache]
     clumpylen plot DIR                       figures of a finished run
     clumpylen analyze DIR                    S/N and limiting magnitudes of a finished run
     clumpylen study STUDY --out DIR [--scheduler ADDRESS] [--workers N]   a study on Dask
@@ -104,6 +104,8 @@ def _cmd_simulate(args) -> int:
     # Check the overrides, the output directory, the files and the memory the scene
     # needs before any computation.
     resolved = sc.with_overrides(s, seed=args.seed, bands=bands, noise=noise)
+    if args.no_cache:   # the one switch (`cache.py`): compiled programs, PSFs, rays
+        os.environ["CLUMPYLEN_NO_CACHE"] = "1"
     from .preflight import preflight
     from .rundir import check_target
 
@@ -111,10 +113,12 @@ def _cmd_simulate(args) -> int:
     for note in preflight(resolved):
         print(f"clumpylen: warning: {note}", file=sys.stderr)
     try:
+        from .cache import enable_compilation_cache
         from .pipeline import simulate
     except ImportError as exc:
         print(f"clumpylen: error: the simulation pipeline is not available ({exc})", file=sys.stderr)
         return EXIT_FAILURE
+    cache_dir = enable_compilation_cache()
     summary = simulate(s, out, bands=bands, seed=args.seed, noise=noise, progress=not args.quiet)
     if args.plots:
         from .plotting import plot_run
@@ -122,6 +126,7 @@ def _cmd_simulate(args) -> int:
         plot_run(out)
     if not args.quiet:
         _print_summary(summary, out)
+        _print_files_and_split(summary, out, cache_dir)
     return EXIT_OK
 
 
@@ -220,6 +225,30 @@ def _cmd_study(args) -> int:
     return EXIT_OK
 
 
+def _print_files_and_split(summary, out: str, cache_dir) -> None:
+    """The files of a run, folder by folder, and its time split into compile and run."""
+    from pathlib import Path
+
+    root = Path(out)
+    by_dir: dict = {}
+    for f in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = f.relative_to(root)
+        by_dir.setdefault(str(rel.parent), []).append(rel.name)
+    for folder, names in sorted(by_dir.items(), key=lambda kv: (kv[0] != ".", kv[0])):
+        label = "" if folder == "." else f"{folder}/: "
+        print(f"  files {label}{' '.join(names)}")
+    split = summary.get("timings_split_s") if isinstance(summary, dict) else None
+    if not split:
+        return
+    comp = sum(v["compile"] for v in split.values())
+    run = sum(v["run"] for v in split.values())
+    big = sorted(split.items(), key=lambda kv: -kv[1]["total"])[:5]
+    print("  slowest stages: " + ", ".join(
+        f"{k} {v['total']:.1f} s ({v['compile']:.1f} compile)" for k, v in big))
+    where = f"compilation cache {cache_dir}" if cache_dir else "compilation cache off"
+    print(f"  time split: compile {comp:.1f} s + run {run:.1f} s ({where})")
+
+
 def _existing_dir(path: str) -> str:
     """A complete run directory (its manifest checked), else a user error."""
     from .rundir import check_run
@@ -298,6 +327,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--no-noise", action="store_true", help="noise-free images only")
     q.add_argument("--quiet", "-q", action="store_true", help="no progress output")
     q.add_argument("--plots", action="store_true", help="also make the diagnostic figures")
+    q.add_argument("--no-cache", action="store_true",
+                   help="keep nothing between runs: no compiled programs, PSFs or traced rays "
+                        "read or written (same as CLUMPYLEN_NO_CACHE=1)")
     q.set_defaults(func=_cmd_simulate)
 
     q = sub.add_parser("fit", help="fit the scene's clumps to observed or simulated images")

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import convolve, noise, profiles, render, tiles
+from . import convolve, noise, profiles, raycache, render, tiles
 from . import defaults as D
 from .errors import ConfigError, require
 from .lensing.linearised import (ClumpImages, FootprintIndex, bilinear_patch,
@@ -748,7 +748,8 @@ def require_float64_mode(dtype):
 
 def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                 lens_pixel_arcsec: float = D.LENS_PIXEL_ARCSEC, source_pixel_arcsec: float = D.SOURCE_PIXEL_ARCSEC,
-                accuracy: Accuracy = Accuracy(), dtype=jnp.float64) -> SceneModel:
+                accuracy: Accuracy = Accuracy(), dtype=jnp.float64,
+                ray_cache=None) -> SceneModel:
     """Make the forward model of a scene (static decisions happen here, once).
 
     source: a Source with concrete parameters (sets the traced region and stamp sizes;
@@ -758,6 +759,7 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
         or the image field (β) for unlensed ones; None: found from the source's extent.
     lens_pixel_arcsec: high-resolution lens-plane pixel.  source_pixel_arcsec: pixel of the
         source-plane grid holding the clumps (grid mode).
+    ray_cache: folder keeping traced lens-plane corners between runs (`raycache`), or None.
     """
     accuracy.validate()
     source.validate()
@@ -814,7 +816,7 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     y_lo = min(l.grid.y_range[0] for l in layouts)
     y_hi = max(l.grid.y_range[1] for l in layouts)
     hr = Grid.covering((x_lo, x_hi), (y_lo, y_hi), lens_pixel_arcsec)
-    corner_b1, corner_b2 = trace_corners(lens, hr)
+    corner_b1, corner_b2 = raycache.traced_corners(lens, hr, trace_corners, ray_cache)
     rows, cols, footprint_index = traced_pixels(corner_b1, corner_b2, center, radius)
     if rows.size == 0:
         raise ConfigError("render.field_arcsec", field_arcsec,

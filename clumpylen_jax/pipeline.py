@@ -23,8 +23,10 @@ import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
 from . import profiles, render, rgbimage, rundir, scene as scene_mod
+from .cache import cache_enabled, cache_root
 from .errors import ConfigError
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
+from .timing import StageClock
 
 
 # ------------------------------------------------------------------ progress
@@ -38,12 +40,15 @@ class _Progress:
         self.total = max(total, 1)
         self.done = 0
         self.timings: dict[str, float] = {}
+        self.clock = StageClock()       # each stage's compile / run split
 
     def stage(self, name: str):
         progress = self
 
         class _Stage:
             def __enter__(self):
+                self.clocked = progress.clock.stage(name)
+                self.clocked.__enter__()
                 self.t0 = time.perf_counter()
                 if progress.enabled:
                     bar = "#" * int(30 * progress.done / progress.total)
@@ -52,6 +57,7 @@ class _Progress:
 
             def __exit__(self, *exc):
                 progress.timings[name] = round(time.perf_counter() - self.t0, 4)
+                self.clocked.__exit__(*exc)
                 progress.done += 1
                 if progress.enabled and progress.done >= progress.total:
                     sys.stderr.write("\r" + " " * 75 + "\r")
@@ -356,7 +362,8 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         model = model_mod.build_model(
             source, bands, lens=lens, field_arcsec=field,
             lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
-            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
+            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype,
+            ray_cache=cache_root() / "rays" if cache_enabled() else None)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
                     host_masses, progress.timings)
 
@@ -526,6 +533,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
                   [f"rgb:{'-'.join(t)}" for t in scene.output.rgb] +
                   (["hr"] if scene.output.hr else []),
         "timings_s": dict(prog.timings, total=round(time.perf_counter() - t_start, 3)),
+        "timings_split_s": prog.clock.split(),
         "accuracy": dataclasses.asdict(prep.accuracy),
     }
     io.write_json(out / "summary.json", summary)

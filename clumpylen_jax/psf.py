@@ -557,10 +557,11 @@ def _band_sampling(wavelength_aa: np.ndarray, throughput: np.ndarray, n: int) ->
     return np.array(waves)[keep] * 1e-10, weights[keep] / weights[keep].sum()
 
 
-def default_cache_dir() -> Path:
-    """$CLUMPYLEN_CACHE/psf if set, else ~/.cache/clumpylen_jax/psf."""
-    root = os.environ.get("CLUMPYLEN_CACHE")
-    return (Path(root) if root else Path.home() / ".cache" / "clumpylen_jax") / "psf"
+def default_cache_dir() -> Path | bool:
+    """$CLUMPYLEN_CACHE/psf if set, else ~/.cache/clumpylen_jax/psf; False (no caching)
+    when CLUMPYLEN_NO_CACHE is set (`clumpylen_jax.cache`)."""
+    from .cache import cache_enabled, cache_root
+    return cache_root() / "psf" if cache_enabled() else False
 
 
 def diffraction_psf(
@@ -642,8 +643,10 @@ def diffraction_psf(
     key = hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()[:24]
     source = f"poppy diffraction PSF {telescope} {band.name} ({len(waves_m)} wavelengths)"
     cache_path = None
+    if cache_dir is None:
+        cache_dir = default_cache_dir()
     if cache_dir is not False:
-        cache_path = Path(cache_dir if cache_dir is not None else default_cache_dir()) / f"{telescope}_{band.name}_{key}.npy"
+        cache_path = Path(cache_dir) / f"{telescope}_{band.name}_{key}.npy"
         if cache_path.is_file():
             try:
                 return PSF(np.load(cache_path), pixel_arcsec, False, source + " [cached]", None)
@@ -656,11 +659,13 @@ def diffraction_psf(
 
 
 def _poppy_version() -> str:
+    # from the installed package's metadata: importing poppy (scipy.signal, ...) costs
+    # ~1 s, which a cached PSF does not need
+    from importlib.metadata import PackageNotFoundError, version
     try:
-        import poppy
-    except ImportError as exc:
+        return version("poppy")
+    except PackageNotFoundError as exc:
         raise ConfigError("psf", "diffraction", "the poppy package (pip install poppy) for built-in diffraction PSFs") from exc
-    return poppy.__version__
 
 
 def _compute_diffraction(telescope, waves_m, weights, pixel_arcsec, n_pix, sub, pupil_npix) -> np.ndarray:

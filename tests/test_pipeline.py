@@ -52,8 +52,12 @@ def test_band_file_contract(runs):
         pulls = (data - clean) / np.sqrt(var)
         assert abs(pulls.std() - 1) < 0.05
     summary = json.loads((a / "summary.json").read_text())
-    for key in ("scene", "seed", "version", "band_total_counts", "timings_s", "stages"):
+    for key in ("scene", "seed", "version", "band_total_counts", "timings_s", "stages",
+                "timings_split_s"):
         assert key in summary
+    for stage, t in summary["timings_split_s"].items():    # compile + run = the stage's time
+        assert 0 <= t["compile"] <= t["total"] and abs(t["compile"] + t["run"] - t["total"]) < 2e-3
+    assert summary["timings_split_s"]["render (compile + run)"]["compile"] > 0
     assert summary["scene"]["scene"]["name"] == "single-sersic"
 
 

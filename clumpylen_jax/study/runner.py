@@ -28,22 +28,20 @@ from .store import Store, gather
 from .tasks import make_tasks
 
 
-def cache_dir() -> str:
-    """The shared JAX compilation cache: $CLUMPYLEN_CACHE/jax or ~/.cache/clumpylen_jax/jax."""
-    root = os.environ.get("CLUMPYLEN_CACHE") or os.path.join(os.path.expanduser("~"), ".cache",
-                                                             "clumpylen_jax")
-    return os.path.join(root, "jax")
+def cache_dir() -> str | None:
+    """The shared JAX compilation cache (`cache.py`: $CLUMPYLEN_CACHE/jax or
+    ~/.cache/clumpylen_jax/jax); None when CLUMPYLEN_NO_CACHE turns caching off."""
+    from ..cache import cache_enabled, cache_root
+
+    return str(cache_root() / "jax") if cache_enabled() else None
 
 
-def enable_compilation_cache(path: str) -> None:
-    """Point this process's JAX at a persistent compilation cache."""
-    import jax
+def enable_compilation_cache(path: str | None) -> None:
+    """Point this process's JAX at the study's compilation cache (None: no cache).
+    Before anything compiles: JAX settles on a cache at its first compilation."""
+    from ..cache import enable_compilation_cache as enable
 
-    # before anything compiles: JAX decides once, at its first compilation, whether to cache
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    # the study's programs compile in seconds: cache every one that takes over 0.2 s
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    enable(path is not None, folder=path)
 
 
 def _plugin(path: str):
