@@ -21,7 +21,7 @@ PIX = 0.03
 NPIX = 41
 HALF = 0.5 * NPIX * PIX
 FIELD = ((-HALF, HALF), (-HALF, HALF))
-ACC = dataclasses.replace(TOY_ACCURACY, psf_oversampling=3, exact_core=3)
+ACC = dataclasses.replace(TOY_ACCURACY, psf_oversampling=3)
 BANDS = toy_bands(1, psf_sigma_pix=1.0)
 HOST = Sersic(jnp.array([40.0]), jnp.asarray(0.25), jnp.asarray(1.0), jnp.asarray(0.7),
               jnp.asarray(0.4), jnp.zeros(2))
