@@ -1,0 +1,253 @@
+"""Recovery of clumps by `clumpylen fit` from the images alone (issue 18).
+
+For each seed: a catalogue of clumps (random positions around the host, magnitudes
+spanning S/N ≈ 3–100, R_e 5–30 mas, q 0.5–1) and a scene (a Sérsic host by magnitude,
+one NIRCam F200W band with a Gaussian PSF file) are written; `clumpylen simulate` makes
+the image; `clumpylen fit SCENE --image F200W=... --out DIR` fits it with no catalogue
+(the scene's clumps are never read by fit). Scenes: "unlensed" and "sis" (the same
+source behind an SIS of θ_E = 1" near its caustic: an arc).
+
+Truth matching: each true clump (brightest first) takes the nearest unmatched fitted
+clump within `MATCH_PIX` detector pixels (source plane: divided by √|μ| of the clump).
+Reported: recovered fraction vs the Fisher S/N of the true clump's flux
+(`detect.clump_detectability`, marginalised over every clump's flux, size and position)
+and vs flux and R_e; false clumps per scene (all, and with fitted S/N > 10); pulls
+(fit − true)/σ of flux, R_e and β; blends (fitted clumps with several true ones within
+the radius: flux bias). The outside check: at S/N > 10, ≥ 90 % recovered, |pull| < 3 for
+flux and size in ≥ 90 % of them, ≤ 1 false clump per scene with S/N > 10.
+
+Run: .venv/bin/python benchmarks/bench_recovery.py [--seeds 4] [--scenes unlensed,sis]
+Writes benchmarks/results/recovery.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+from astropy.table import Table
+
+import clumpylen_jax  # noqa: F401
+from clumpylen_jax.cli import main as cli
+
+from _common import RESULTS, machine
+
+PIX = 0.031
+MATCH_PIX = 1.5
+N_CLUMPS = 6
+SNR_BINS = [0, 5, 10, 20, 1e9]
+
+SCENE = """
+[scene]
+name = "recovery-{kind}-{seed}"
+seed = {seed}
+z_source = 2.0
+
+[source]
+center_arcsec = {center}
+
+[source.bulge]
+magnitudes = {{ F200W = {host_mag} }}
+re_arcsec = {host_re}
+n = 1.0
+q = 0.7
+pa_rad = 0.5
+
+[source.clumps]
+catalog = "clumps.ecsv"
+{lens}
+[render]
+source_pixel_arcsec = 0.001
+lens_pixel_arcsec = 0.01
+field_arcsec = {{ x = [{lo}, {hi}], y = [{lo}, {hi}] }}
+accuracy = "fast"
+
+[[bands]]
+instrument = "JWST/NIRCam"
+filter = "F200W"
+exptime_s = 2000.0
+sky_counts_per_s = 0.16
+psf = "psf.fits"
+psf_pixel_arcsec = {pix}
+
+[output]
+noise = true
+unlensed = false
+"""
+
+LENS = """
+[lens]
+z_lens = 0.5
+components = [ { kind = "sis", theta_e_arcsec = 1.0, center_arcsec = [0.0, 0.0] } ]
+"""
+
+KINDS = {
+    "unlensed": dict(center=[0.0, 0.0], host_mag=22.5, host_re=0.3, spread=0.35, half=0.9,
+                     mags=(24.5, 28.5), lens=""),
+    "sis": dict(center=[0.08, 0.03], host_mag=25.0, host_re=0.08, spread=0.08, half=1.6,
+                mags=(27.0, 31.0), lens=LENS),
+}
+
+
+def _psf(path):
+    r = np.arange(-7, 8)
+    k = np.exp(-0.5 * (r[:, None] ** 2 + r[None, :] ** 2) / 1.0**2)
+    fits.PrimaryHDU(k / k.sum()).writeto(path, overwrite=True)
+
+
+def _catalog(kind, seed, path):
+    cfg = KINDS[kind]
+    rng = np.random.default_rng(1000 + seed)
+    pos = []
+    while len(pos) < N_CLUMPS:
+        p = np.asarray(cfg["center"]) + rng.uniform(-cfg["spread"], cfg["spread"], 2)
+        if all(np.hypot(*(p - q)) > 0.4 * cfg["spread"] for q in pos):
+            pos.append(p)
+    pos = np.array(pos)
+    t = Table({"beta1_arcsec": pos[:, 0], "beta2_arcsec": pos[:, 1],
+               "re_arcsec": rng.uniform(0.005, 0.03, N_CLUMPS), "q": rng.uniform(0.5, 1.0, N_CLUMPS),
+               "pa_rad": rng.uniform(0, np.pi, N_CLUMPS),
+               "mag_F200W": rng.uniform(*cfg["mags"], N_CLUMPS)})
+    t.write(path, format="ascii.ecsv", overwrite=True)
+
+
+def _truth_snr(scene_path):
+    """Fisher S/N of each true clump's flux (truth model: evaluation only)."""
+    from clumpylen_jax import scene as sc
+    from clumpylen_jax.inference.detect import clump_detectability
+    from clumpylen_jax.pipeline import prepare
+    prep = prepare(sc.load_scene(scene_path))
+    return np.asarray(clump_detectability(prep.model, prep.source)["snr_flux_F200W"])
+
+
+def _match(true, fit, radius):
+    """Index of the matched fitted clump per true clump (−1: none), brightest first."""
+    out = np.full(len(true), -1)
+    used = set()
+    for i in np.argsort(-np.asarray(true["flux"])):
+        d = np.hypot(fit["beta1_arcsec"] - true["beta1_arcsec"][i],
+                     fit["beta2_arcsec"] - true["beta2_arcsec"][i])
+        for j in np.argsort(d):
+            if d[j] > radius[i]:
+                break
+            if j not in used:
+                out[i] = j
+                used.add(int(j))
+                break
+    return out
+
+
+def run_one(kind, seed, work: Path):
+    cfg = KINDS[kind]
+    d = work / f"{kind}-{seed}"
+    d.mkdir(parents=True)
+    _psf(d / "psf.fits")
+    _catalog(kind, seed, d / "clumps.ecsv")
+    (d / "scene.toml").write_text(SCENE.format(kind=kind, seed=seed, center=cfg["center"],
+                                               host_mag=cfg["host_mag"], host_re=cfg["host_re"],
+                                               lens=cfg["lens"], lo=-cfg["half"], hi=cfg["half"],
+                                               pix=PIX))
+    assert cli(["simulate", str(d / "scene.toml"), "--out", str(d / "run"), "-q"]) == 0
+    t0 = time.perf_counter()
+    assert cli(["fit", str(d / "scene.toml"), "--image", f"F200W={d}/run/bands/F200W.fits",
+                "--out", str(d / "fit"), "-q"]) == 0
+    fit_s = time.perf_counter() - t0
+    zp = fits.getheader(d / "run/bands/F200W.fits")["ZP_AB"]
+    true = Table.read(d / "run/catalog.ecsv")
+    true["flux"] = 10 ** (-0.4 * (np.asarray(true["mag_F200W"]) - zp))
+    true["snr"] = _truth_snr(d / "scene.toml")
+    fit = Table.read(d / "fit/fit.ecsv")
+    mu = np.abs(np.asarray(true["magnification"])) if "magnification" in true.colnames else 1.0
+    radius = MATCH_PIX * PIX / np.sqrt(np.broadcast_to(np.maximum(mu, 1.0), (len(true),)))
+    m = _match(true, fit, radius)
+    rows = []
+    for i, j in enumerate(m):
+        r = {"snr": float(true["snr"][i]), "flux": float(true["flux"][i]),
+             "re_arcsec": float(true["re_arcsec"][i]), "recovered": bool(j >= 0)}
+        if j >= 0:
+            f = fit[j]
+            r.update(pull_flux=float((f["flux_F200W"] - r["flux"]) / f["flux_F200W_err"]),
+                     pull_re=float((f["re_arcsec"] - r["re_arcsec"]) / f["re_arcsec_err"]),
+                     pull_beta1=float((f["beta1_arcsec"] - true["beta1_arcsec"][i]) / f["beta1_arcsec_err"]),
+                     pull_beta2=float((f["beta2_arcsec"] - true["beta2_arcsec"][i]) / f["beta2_arcsec_err"]),
+                     flag=int(f["flag"]))
+        rows.append(r)
+    unmatched = [j for j in range(len(fit)) if j not in set(m.tolist())]
+    fit_snr = np.asarray(fit["flux_F200W"]) / np.asarray(fit["flux_F200W_err"])
+    near = [int(np.sum(np.hypot(true["beta1_arcsec"] - f["beta1_arcsec"],
+                                true["beta2_arcsec"] - f["beta2_arcsec"]) < 2 * radius.max()))
+            for f in fit]
+    blends = [{"n_true": near[j], "flux_ratio": float(fit["flux_F200W"][j] / np.sum(
+        true["flux"][np.hypot(true["beta1_arcsec"] - fit["beta1_arcsec"][j],
+                              true["beta2_arcsec"] - fit["beta2_arcsec"][j]) < 2 * radius.max()]))}
+              for j in range(len(fit)) if near[j] > 1]
+    return {"kind": kind, "seed": seed, "fit_s": fit_s, "clumps": rows, "n_fit": len(fit),
+            "false": len(unmatched), "false_snr10": int(np.sum(fit_snr[unmatched] > 10)) if unmatched else 0,
+            "blends": blends}
+
+
+def summarise(results):
+    clumps = [c for r in results for c in r["clumps"]]
+    snr = np.array([c["snr"] for c in clumps])
+    rec = np.array([c["recovered"] for c in clumps])
+    out = {"bins": []}
+    for lo, hi in zip(SNR_BINS[:-1], SNR_BINS[1:]):
+        sel = (snr >= lo) & (snr < hi)
+        out["bins"].append({"snr": [lo, hi], "n": int(sel.sum()),
+                            "recovered": float(rec[sel].mean()) if sel.any() else None})
+    hi = [c for c in clumps if c["snr"] > 10 and c["recovered"]]
+    out["snr_gt10_recovered"] = float(np.mean([c["recovered"] for c in clumps if c["snr"] > 10])) \
+        if any(c["snr"] > 10 for c in clumps) else None
+    for p in ("flux", "re", "beta1", "beta2"):
+        v = np.array([c[f"pull_{p}"] for c in hi])
+        out[f"pull_{p}_within3"] = float(np.mean(np.abs(v) < 3)) if v.size else None
+        out[f"pull_{p}_median"] = float(np.median(v)) if v.size else None
+    out["false_per_scene"] = float(np.mean([r["false"] for r in results]))
+    out["false_snr10_per_scene"] = float(np.mean([r["false_snr10"] for r in results]))
+    out["max_false_snr10"] = int(max(r["false_snr10"] for r in results))
+    return out
+
+
+def _fmt(v):
+    return "" if v is None else f"{v:.2f}"
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--scenes", default="unlensed,sis")
+    args = ap.parse_args()
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind in args.scenes.split(","):
+            for seed in range(args.seeds):
+                r = run_one(kind, seed, Path(tmp))
+                results.append(r)
+                print(kind, seed, f"fit {r['fit_s']:.0f} s, found {r['n_fit']}, false {r['false']} "
+                      f"(S/N>10: {r['false_snr10']}), recovered "
+                      f"{sum(c['recovered'] for c in r['clumps'])}/{len(r['clumps'])}", flush=True)
+    summary = {k: summarise([r for r in results if r["kind"] == k]) for k in args.scenes.split(",")}
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "recovery.json").write_text(json.dumps(
+        {"machine": machine(), "results": results, "summary": summary}, indent=2))
+    lines = ["# bench_recovery: clumpylen simulate -> clumpylen fit, images only", "",
+             f"{args.seeds} seeds per scene, {N_CLUMPS} clumps each; {machine()['date']}", ""]
+    for k, s in summary.items():
+        lines += [f"## {k}", "", "| Fisher S/N | clumps | recovered |", "|---|---|---|"]
+        lines += [f"| {b['snr'][0]}-{b['snr'][1] if b['snr'][1] < 1e8 else 'inf'} | {b['n']} | "
+                  f"{_fmt(b['recovered'])} |" for b in s["bins"]]
+        lines += ["", f"S/N > 10: recovered {s['snr_gt10_recovered']}; |pull| < 3: flux "
+                  f"{s['pull_flux_within3']}, R_e {s['pull_re_within3']}, β1 {s['pull_beta1_within3']}, "
+                  f"β2 {s['pull_beta2_within3']}; false clumps per scene {s['false_per_scene']:.2f} "
+                  f"(S/N > 10: {s['false_snr10_per_scene']:.2f}, max {s['max_false_snr10']})", ""]
+    (RESULTS / "recovery.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
