@@ -27,7 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax
+
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax.inference import auto, capacity
 from clumpylen_jax.inference.auto import AutoOptions, fit_without_truth
 from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands, toy_clumps

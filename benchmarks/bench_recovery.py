@@ -32,7 +32,9 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax
+
+clumpylen_jax.enable_float64()  # float64: the caller's choice
 from clumpylen_jax.cli import main as cli
 
 from _common import RESULTS, machine

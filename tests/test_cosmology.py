@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax import cosmology as cosmo
 from clumpylen_jax.errors import ConfigError
 

@@ -28,7 +28,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, note, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-import clumpylen_jax  # noqa: E402,F401
+
 from clumpylen_jax import profiles, render  # noqa: E402
 from clumpylen_jax.errors import ConfigError  # noqa: E402
 from clumpylen_jax.lensing.analytic import SIS  # noqa: E402

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from scipy.special import gammaincc
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax import incgamma
 
 ORDERS = [0.4, 0.5, 1.0, 1.37, 2.0, 3.7, 8.0, 12.5, 20.0]      # a = 2n, n = 0.2 … 10

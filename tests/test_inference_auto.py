@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.inference import auto
 from clumpylen_jax.inference.auto import AutoOptions, fit_without_truth

@@ -4,7 +4,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.inference.completeness import completeness_grid
 from clumpylen_jax.inference.detect import clump_detectability
 from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands, toy_model

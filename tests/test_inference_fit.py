@@ -6,7 +6,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.inference import fisher_uncertainty, fit_map, make_data, make_state, parametrize
 from clumpylen_jax.inference.mock import toy_bands, toy_model
 from clumpylen_jax.source import Clumps, Source

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401  (x64)
+import clumpylen_jax
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.inference import make_data, make_log_likelihood, make_state, parametrize
 from clumpylen_jax.inference.mock import toy_bands, toy_model

@@ -5,7 +5,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.inference import fisher_uncertainty, make_data, make_state, parametrize
 from clumpylen_jax.inference.mcmc import run_emcee, run_nuts
 from clumpylen_jax.inference.mock import toy_bands, toy_model

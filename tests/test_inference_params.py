@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.inference import Free, Transform, make_state, parametrize, safe_inverse
 from clumpylen_jax.inference.catalog import errors_state, fit_table

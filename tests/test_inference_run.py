@@ -7,7 +7,6 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.inference import fit_map, fit_map_multistart, make_data, make_state, parametrize
 from clumpylen_jax.inference.mock import toy_bands, toy_model
 from clumpylen_jax.inference.run import run_fit

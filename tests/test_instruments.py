@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.filters import PAPER_BANDS, filter_from_arrays, filter_from_file, load_filter
 from clumpylen_jax.instruments import (PUBLISHED_ZEROPOINTS_AB, band_defaults, get_instrument,

@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401  (enables x64)
 from clumpylen_jax.lensing import (DPIE, NFW, SIE, SIS, ExternalShear, LensSum, MassSheet,
                                    grid_lensing_quantities, lensing_quantities, rasterize, with_scale)
 

@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.lensing import find_images, lens_plane_region
 from clumpylen_jax.lensing.clusters import builtin_lens, builtin_lens_info, lens_from_components, load_builtin_spec

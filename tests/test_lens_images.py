@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.lensing import (SIE, SIS, caustics, critical_curves, find_images, lens_plane_region,
                                    lensing_quantities)

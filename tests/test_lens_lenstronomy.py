@@ -45,7 +45,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401  (enables x64)
 from clumpylen_jax.lensing import DPIE, NFW, SIE, SIS, ExternalShear, LensSum, lensing_quantities
 from clumpylen_jax.lensing.clusters import builtin_lens, builtin_names, load_builtin_spec
 

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-import clumpylen_jax  # noqa: F401
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.lensing import SIE, DeflectionGrid, find_images, grid_lensing_quantities, trace
 from clumpylen_jax.lensing._distances import dls_ds

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax
 from clumpylen_jax import profiles
 from clumpylen_jax.lensing.analytic import SIS
 from clumpylen_jax.lensing.linearised import ClumpImages, lensed_clumps, point_images

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax  # noqa: F401
+import clumpylen_jax
 from clumpylen_jax import convolve, noise
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.lensing.analytic import SIS

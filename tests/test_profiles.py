@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from scipy import integrate, special
 
-import clumpylen_jax  # noqa: F401  (enables x64)
 from clumpylen_jax import profiles, render
 from clumpylen_jax.pixels import Grid
 from clumpylen_jax.source import Disk, Sersic, SpiralArms, Texture

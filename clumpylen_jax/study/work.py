@@ -178,8 +178,6 @@ def fisher_snr(model, base, new: Clumps):
 
 def run_task(study: Study, task: Task) -> dict:
     """Execute one task; returns plain numpy arrays (what the store writes)."""
-    import clumpylen_jax  # noqa: F401  (float64 on this worker)
-
     fn = {"simulate": _simulate, "fit": _fit, "inject": _inject_task, "map": _map_task}[task.kind]
     return fn(study, task)
 
