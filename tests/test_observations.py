@@ -1,0 +1,268 @@
+"""Observed images in (issue 17): units through the zero point, every bad input, a mock fit back.
+
+Units are checked against independent computations (astropy units, the AB definition);
+bad inputs go through the CLI (exit 2, one line naming the file or setting, before any
+compilation); the mock fit (MJy/sr, rotated WCS, two pixel scales) checks pulls.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+import clumpylen_jax  # noqa: F401  (float64)
+from clumpylen_jax.cli import main
+from clumpylen_jax.errors import ConfigError
+from clumpylen_jax.observations import ObservationSpec, read_observation, resolve_units
+from clumpylen_jax.observations.config import parse_observation_scene
+from clumpylen_jax.observations.frame import fit_frame
+from clumpylen_jax.observations.units import zeropoint_mjy_sr, zeropoint_photflam
+
+RA0, DEC0 = 64.038142, -24.067472
+
+
+def celestial_header(shape, pixel_arcsec, rot_deg=0.0, center=(RA0, DEC0)):
+    """A TAN WCS header, north-up east-left rotated by rot_deg, centred on the image."""
+    ny, nx = shape
+    c, s = math.cos(math.radians(rot_deg)), math.sin(math.radians(rot_deg))
+    p = pixel_arcsec / 3600.0
+    h = fits.Header()
+    h.update(CTYPE1="RA---TAN", CTYPE2="DEC--TAN", CRVAL1=center[0], CRVAL2=center[1],
+             CRPIX1=(nx + 1) / 2.0, CRPIX2=(ny + 1) / 2.0,
+             CD1_1=-p * c, CD1_2=p * s, CD2_1=p * s, CD2_2=p * c)
+    return h
+
+
+def write_cutout(path, sci, err=None, *, header=None, bunit="MJy/sr", extra=None, wht=None):
+    hdr = fits.Header() if header is None else header.copy()
+    if bunit is not None:
+        hdr["BUNIT"] = bunit
+    for k, v in (extra or {}).items():
+        hdr[k] = v
+    hdus = [fits.PrimaryHDU(), fits.ImageHDU(np.asarray(sci, np.float32), hdr, name="SCI")]
+    if err is not None:
+        hdus.append(fits.ImageHDU(np.asarray(err, np.float32), hdr, name="ERR"))
+    if wht is not None:
+        hdus.append(fits.ImageHDU(np.asarray(wht, np.float32), hdr, name="WHT"))
+    fits.HDUList(hdus).writeto(path, overwrite=True)
+    return str(path)
+
+
+def gaussian_psf_file(path, sigma_pix=1.2, size=15, pixel_arcsec=0.03, scale=1.0):
+    y, x = np.mgrid[:size, :size] - (size - 1) / 2
+    psf = np.exp(-(x**2 + y**2) / (2 * sigma_pix**2)) * scale
+    h = fits.Header()
+    h["PIXSCALE"] = pixel_arcsec
+    fits.PrimaryHDU(psf, h).writeto(path, overwrite=True)
+    return str(path)
+
+
+# ----------------------------------------------------------------------------- units
+
+
+def test_mjy_sr_with_pixar_gives_the_ab_magnitude_of_a_known_source(tmp_path):
+    """A 25.0 AB source spread over pixels in MJy/sr: Σ data × ZP(PIXAR_SR) gives 25.0 back."""
+    pixar = 2.2588e-14
+    f_jy = 3631.0 * 10 ** (-0.4 * 25.0)                 # AB definition
+    y, x = np.mgrid[:21, :21] - 10
+    blob = np.exp(-(x**2 + y**2) / 8.0)
+    sci = blob / blob.sum() * f_jy / (1e6 * pixar)      # MJy/sr per pixel
+    path = write_cutout(tmp_path / "i2d.fits", sci, np.full(sci.shape, 1e-3),
+                        extra={"PIXAR_SR": pixar, "PIXSCALE": 0.031})
+    ob = read_observation(ObservationSpec(filter="F200W", image=path))
+    assert ob.units_how == "MJy/sr x PIXAR_SR"
+    assert ob.zeropoint_ab - 2.5 * np.log10(ob.data.sum()) == pytest.approx(25.0, abs=1e-5)
+    # with only a pixel scale, Ω = (pixel / 206264.8″)²
+    import astropy.units as u
+    omega = ((0.031 * u.arcsec) ** 2).to_value(u.sr)
+    assert zeropoint_mjy_sr(omega) == pytest.approx(
+        -2.5 * np.log10((1 * u.MJy / u.sr * omega * u.sr / (3631 * u.Jy)).decompose().value),
+        abs=1e-9)
+
+
+def test_photflam_zero_point_matches_astropy_units():
+    """ZP from PHOTFLAM/PHOTPLAM equals the AB magnitude of 1 e-/s computed with astropy units."""
+    import astropy.units as u
+    photflam, photplam = 7.0332e-20, 8057.0          # ACS/WFC F814W-like
+    flam = photflam * u.erg / u.s / u.cm**2 / u.AA
+    fnu = flam.to(u.Jy, equivalencies=u.spectral_density(photplam * u.AA))
+    expected = -2.5 * np.log10((fnu / (3631 * u.Jy)).decompose().value)
+    assert zeropoint_photflam(photflam, photplam) == pytest.approx(expected, abs=2e-3)
+    assert zeropoint_photflam(photflam, photplam) == pytest.approx(25.94, abs=0.01)
+
+
+def test_counts_are_divided_by_exptime_and_explicit_zero_point_wins():
+    r = resolve_units({"BUNIT": "ELECTRONS", "EXPTIME": 500.0, "PHOTFLAM": 1e-19, "PHOTPLAM": 8000.0},
+                      where="x")
+    assert r["scale"] == pytest.approx(1 / 500.0) and r["counts_per_unit"] == 1.0
+    r = resolve_units({"BUNIT": "e-/s"}, zeropoint_ab=25.5, where="x")
+    assert r["zeropoint_ab"] == 25.5
+    assert resolve_units({"BUNIT": "nJy"}, where="x")["zeropoint_ab"] == pytest.approx(31.4, abs=1e-3)
+
+
+def test_weight_map_is_inverse_variance_and_zero_weight_is_masked(tmp_path):
+    sci = np.random.default_rng(0).normal(size=(20, 20))
+    wht = np.full(sci.shape, 4.0)
+    wht[3, 4] = 0.0
+    path = write_cutout(tmp_path / "drz.fits", sci, header=None, bunit="ELECTRONS/S",
+                        extra={"PHOTFLAM": 1e-19, "PHOTPLAM": 8000.0, "PIXSCALE": 0.05}, wht=wht)
+    ob = read_observation(ObservationSpec(filter="F814W", image=path))
+    assert ob.variance[0, 0] == pytest.approx(0.25)
+    assert not ob.mask[3, 4] and ob.mask.sum() == 399
+
+
+def test_noise_model_without_map(tmp_path):
+    sci = np.abs(np.random.default_rng(1).normal(size=(20, 20)))
+    path = write_cutout(tmp_path / "hst.fits", sci, bunit=None, extra={"PIXSCALE": 0.05})
+    spec = ObservationSpec(filter="F814W", image=path, units="e-/s", zeropoint_ab=25.94,
+                           noise={"background_rms": 0.0075, "exptime_s": 1980.0})
+    ob = read_observation(spec)
+    mu = np.full(sci.shape, 3.0)
+    assert ob.variance_for(mu)[0, 0] == pytest.approx(0.0075**2 + 3.0 / 1980.0)
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def test_two_pixel_scales_and_a_rotated_wcs_share_one_frame():
+    """NIRCam SW 0.031″ and LW 0.063″ cutouts of one field, rotated 30°: the LW grid lands
+    on the SW frame with its own scale, and θ follows the sky (West, North)."""
+    from clumpylen_jax.observations.frame import BandFrame, celestial_wcs
+    sw = BandFrame((64, 64), 0.031, celestial_wcs(celestial_header((64, 64), 0.031, 30.0)))
+    lw = BandFrame((32, 32), 0.062, celestial_wcs(celestial_header((32, 32), 0.062, 30.0)))
+    fr = fit_frame([sw, lw], ["F150W", "F444W"])
+    g = fr.grids[1]
+    assert g.pixel_arcsec == pytest.approx(0.062, rel=1e-6)
+    # both centred on the same sky point: the grids' centres coincide
+    assert g.x0_arcsec + 15.5 * g.pixel_arcsec == pytest.approx(0.0, abs=1e-6)
+    # a point 1″ along the SW pixel x axis (rotated 30° from West towards North)
+    th = fr.theta(np.array([1.0, 0.0]))
+    assert th == pytest.approx([math.cos(math.radians(30)), math.sin(math.radians(30))], abs=1e-5)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _scene(tmp_path, obs_tables, fit="clumps = \"none\"\n"):
+    text = "[scene]\nname = \"t\"\n"
+    for t in obs_tables:
+        text += "\n[[observations]]\n" + "".join(f"{k} = {v!r}\n".replace("'", '"')
+                                                 for k, v in t.items())
+    text += "\n[fit]\n" + fit
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return str(p)
+
+
+def _good(tmp_path, name="good.fits", **kw):
+    sci = np.random.default_rng(2).normal(size=(24, 24))
+    return write_cutout(tmp_path / name, sci, np.ones_like(sci),
+                        extra={"PIXSCALE": 0.031, **kw.pop("extra", {})}, **kw)
+
+
+def _fails(argv, capsys, *needles):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    for n in needles:
+        assert n in err, err
+    return err
+
+
+@pytest.mark.parametrize("case", ["no_sci", "unknown_units", "no_units", "nan_sigma", "neg_sigma",
+                                  "psf_zero", "all_nan", "zero_variance", "no_overlap",
+                                  "rotated_band", "no_uncertainty", "unknown_key", "dup_filter"])
+def test_bad_observation_input_is_one_line_and_exit_2(tmp_path, capsys, case):
+    good = _good(tmp_path)
+    obs = {"filter": "F150W", "image": good}
+    tables, needles = [obs], []
+    sci = np.random.default_rng(3).normal(size=(24, 24))
+    if case == "no_sci":
+        p = tmp_path / "table.fits"
+        fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(
+            [fits.Column("a", "E", array=np.ones(3))])]).writeto(p)
+        obs["image"], needles = str(p), ["observations[F150W].image", "SCI"]
+    elif case == "unknown_units":
+        obs["image"] = write_cutout(tmp_path / "u.fits", sci, np.ones_like(sci), bunit="furlongs",
+                                    extra={"PIXSCALE": 0.03})
+        needles = ["units", "zeropoint_ab", "u.fits"]
+    elif case == "no_units":
+        obs["image"] = write_cutout(tmp_path / "n.fits", sci, np.ones_like(sci), bunit=None,
+                                    extra={"PIXSCALE": 0.03})
+        needles = ["BUNIT", "n.fits"]
+    elif case in ("nan_sigma", "neg_sigma"):
+        err = np.ones_like(sci)
+        err[5, 5] = np.nan if case == "nan_sigma" else -1.0
+        obs["image"] = write_cutout(tmp_path / "e.fits", sci, err, extra={"PIXSCALE": 0.03})
+        needles = ["observations[F150W].error", "e.fits"]
+    elif case == "psf_zero":
+        obs["psf"] = gaussian_psf_file(tmp_path / "psf.fits", scale=0.0)
+        needles = ["observations[F150W].psf", "psf.fits"]
+    elif case == "all_nan":
+        obs["image"] = write_cutout(tmp_path / "nan.fits", np.full_like(sci, np.nan),
+                                    np.ones_like(sci), extra={"PIXSCALE": 0.03})
+        needles = ["nan.fits", "usable pixels"]
+    elif case == "zero_variance":
+        obs["image"] = write_cutout(tmp_path / "z.fits", sci, np.zeros_like(sci),
+                                    extra={"PIXSCALE": 0.03})
+        needles = ["z.fits", "usable pixels"]
+    elif case in ("no_overlap", "rotated_band"):
+        far = (RA0 + 0.01, DEC0) if case == "no_overlap" else (RA0, DEC0)
+        rot = 20.0 if case == "rotated_band" else 0.0
+        obs["image"] = write_cutout(tmp_path / "a.fits", sci, np.ones_like(sci),
+                                    header=celestial_header(sci.shape, 0.03))
+        tables.append({"filter": "F200W", "image": write_cutout(
+            tmp_path / "b.fits", sci, np.ones_like(sci),
+            header=celestial_header(sci.shape, 0.03, rot, far))})
+        needles = ["observations[F200W]", "b.fits"]
+    elif case == "no_uncertainty":
+        obs["image"] = write_cutout(tmp_path / "s.fits", sci, None, extra={"PIXSCALE": 0.03})
+        needles = ["observations[F150W].error", "s.fits"]
+    elif case == "unknown_key":
+        obs["eror"] = "ERR"
+        needles = ["observations[F150W].eror", "error"]
+    elif case == "dup_filter":
+        tables.append(dict(obs))
+        needles = ["observations.filter", "F150W"]
+    scene = _scene(tmp_path, tables)
+    _fails(["fit", scene, "--out", str(tmp_path / "out")], capsys, *needles)
+    assert not (tmp_path / "out").exists()
+
+
+def test_repeated_or_unknown_image_band_is_an_error(tmp_path, capsys):
+    good = _good(tmp_path)
+    scene = _scene(tmp_path, [{"filter": "F150W", "image": good}])
+    _fails(["fit", scene, "--image", f"F150W={good}", "--image", f"f150w={good}", "--out",
+            str(tmp_path / "o")], capsys, "--image", "twice")
+    _fails(["fit", scene, "--image", f"F444W={good}", "--out", str(tmp_path / "o")], capsys,
+           "--image", "F444W")
+    # the simulation path names --image too
+    _fails(["fit", "single-sersic", "--image", f"F444W={good}", "--out", str(tmp_path / "o")],
+           capsys, "--image", "F444W")
+
+
+def test_fit_auto_without_the_auto_module_says_so(tmp_path, capsys):
+    from clumpylen_jax.observations.run import _auto_available
+    if _auto_available():
+        pytest.skip("inference.auto is available: 'auto' is wired")
+    scene = _scene(tmp_path, [{"filter": "F150W", "image": _good(tmp_path)}],
+                   fit='clumps = "auto"\n')
+    _fails(["fit", scene, "--out", str(tmp_path / "o")], capsys, "fit.clumps", "not available")
+
+
+def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
+    doc = {"observations": [{"filter": "f150w", "image": "a.fits", "error": "ERR",
+                             "weight": None}], "fit": {"clumps": "starts.ecsv"}}
+    doc["observations"][0].pop("weight")
+    sc = parse_observation_scene(doc, str(tmp_path / "s.toml"))
+    assert sc.observations[0].filter == "F150W"
+    assert sc.observations[0].image == str(tmp_path / "a.fits")
+    assert sc.observations[0].error == "ERR"          # an HDU name stays a name
+    assert sc.fit.clumps == str(tmp_path / "starts.ecsv")
+    with pytest.raises(ConfigError, match="fit.clump_re_max_arcsec"):
+        parse_observation_scene({"observations": doc["observations"],
+                                 "fit": {"clump_re_max_arcsec": -1.0}})
