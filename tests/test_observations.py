@@ -146,11 +146,16 @@ def test_two_pixel_scales_and_a_rotated_wcs_share_one_frame():
 # ----------------------------------------------------------------------------- bad input
 
 
+def _toml(v):
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + " }"
+    return f"{v!r}".replace("'", '"')
+
+
 def _scene(tmp_path, obs_tables, fit="clumps = \"none\"\n"):
     text = "[scene]\nname = \"t\"\n"
     for t in obs_tables:
-        text += "\n[[observations]]\n" + "".join(f"{k} = {v!r}\n".replace("'", '"')
-                                                 for k, v in t.items())
+        text += "\n[[observations]]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in t.items())
     text += "\n[fit]\n" + fit
     p = tmp_path / "scene.toml"
     p.write_text(text)
@@ -266,3 +271,154 @@ def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
     with pytest.raises(ConfigError, match="fit.clump_re_max_arcsec"):
         parse_observation_scene({"observations": doc["observations"],
                                  "fit": {"clump_re_max_arcsec": -1.0}})
+
+
+# ----------------------------------------------------------------------------- a mock fitted back
+
+
+def _mock_scene(tmp_path, seed=0):
+    """Two bands in MJy/sr (0.03″ and 0.06″ pixels) with a WCS rotated by 35°: a host and two
+    clumps rendered by the fit's own model on the data grids, Gaussian noise; starts for the
+    clumps offset by ~1.5 pixels from the truth (never the truth)."""
+    import jax.numpy as jnp
+
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.fit import make_model_factory
+    from clumpylen_jax.observations.frame import BandFrame, celestial_wcs
+    from clumpylen_jax.source import Clumps, Sersic, Source
+
+    rng = np.random.default_rng(seed)
+    pixar = {0.03: (0.03 / 206264.806) ** 2, 0.06: (0.06 / 206264.806) ** 2}
+    bands = [("F150W", 0.03, (40, 40), 0.004), ("F444W", 0.06, (20, 20), 0.003)]
+    headers = [celestial_header(shape, pix, 35.0) for _, pix, shape, _ in bands]
+    frames = [BandFrame(shape, pix, celestial_wcs(h)) for (_, pix, shape, _), h in
+              zip(bands, headers)]
+    frame = fit_frame(frames, [b[0] for b in bands])
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    truth = Source(
+        bulge=Sersic(flux=f([1.2, 1.0]), re_arcsec=f(0.2), n=f(1.0), q=f(0.45), pa_rad=f(0.6),
+                     center_arcsec=f([0.02, -0.03])),
+        clumps=Clumps(center_arcsec=f([[0.15, 0.10], [-0.2, -0.12]]), flux=f([[0.3, 0.15],
+                                                                             [0.2, 0.25]]),
+                      re_arcsec=f([0.03, 0.05]), n=f([1.0, 1.0]), q=f([1.0, 1.0]),
+                      pa_rad=f([0.0, 0.0])))
+
+    class _Ob:   # what make_model_factory reads of an observation
+        def __init__(self, name, psf):
+            self.name, self.psf = name, psf
+
+    from clumpylen_jax.psf import load_psf_fits
+    psfs = [load_psf_fits(gaussian_psf_file(tmp_path / f"psf_{n}.fits", 1.3, 15, pix))
+            for n, pix, _, _ in bands]
+    opts = FitOptions(clumps="starts.ecsv")
+    model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
+    images = [np.asarray(i) for i in model.band_images(truth)]
+    tables = []
+    for (name, pix, shape, sigma), h, img in zip(bands, headers, images):
+        sci = img + rng.normal(0, sigma, shape)
+        path = write_cutout(tmp_path / f"{name}_i2d.fits", sci, np.full(shape, sigma), header=h,
+                            extra={"PIXAR_SR": pixar[pix]})
+        tables.append({"filter": name, "image": path, "psf": str(tmp_path / f"psf_{name}.fits")})
+    # starts: the truth moved by ~1.5 SW pixels, written as RA/Dec
+    start = np.asarray(truth.clumps.center_arcsec) + np.array([[0.04, -0.03], [-0.03, -0.04]])
+    ra, dec = frame.radec(start)
+    from astropy.table import Table
+    Table({"ra_deg": ra, "dec_deg": dec}).write(tmp_path / "starts.ecsv", overwrite=True)
+    scene = _scene(tmp_path, tables, fit='clumps = "starts.ecsv"\n')
+    zps = [zeropoint_mjy_sr(pixar[b[1]]) for b in bands]
+    return scene, truth, frame, zps
+
+
+@pytest.mark.slow
+def test_mock_mjy_sr_rotated_wcs_two_scales_fitted_back_with_honest_pulls(tmp_path):
+    import json
+
+    from astropy.table import Table
+    scene, truth, frame, zps = _mock_scene(tmp_path)
+    assert main(["fit", scene, "--out", str(tmp_path / "out"), "-q"]) == 0
+    t = Table.read(tmp_path / "out" / "fit.ecsv")
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["success"] and summary["n_clumps"] == 2
+    for band, chi2 in summary["chi2_per_dof"].items():
+        assert 0.85 < chi2 < 1.15, (band, chi2)
+    # match rows to the truth by position (the fit may reorder nothing, but say so)
+    true_radec = frame.radec(np.asarray(truth.clumps.center_arcsec))
+    pulls = []
+    for i in range(2):
+        j = int(np.argmin(np.hypot(t["ra_deg"] - true_radec[0][i], t["dec_deg"] - true_radec[1][i])))
+        for b, (name, zp) in enumerate(zip(("F150W", "F444W"), zps)):
+            true_mag = zp - 2.5 * np.log10(float(truth.clumps.flux[i, b]))
+            pulls.append((t[f"mag_{name}"][j] - true_mag) / t[f"mag_{name}_err"][j])
+        pulls.append((t["ra_deg"][j] - true_radec[0][i]) / t["ra_deg_err"][j])
+        pulls.append((t["dec_deg"][j] - true_radec[1][i]) / t["dec_deg_err"][j])
+        pulls.append((t["re_arcsec"][j] - float(truth.clumps.re_arcsec[i])) / t["re_arcsec_err"][j])
+    pulls = np.asarray(pulls, float)
+    assert np.all(np.isfinite(pulls)) and np.max(np.abs(pulls)) < 4.0, pulls
+    host = summary["host"]
+    assert abs(host["re_arcsec"] - 0.2) < 4 * host["re_arcsec_err"]
+    for name in ("residuals_F150W.fits", "residuals_F444W.fits", "clumps.reg", "fit.png"):
+        assert (tmp_path / "out" / name).is_file()
+    with fits.open(tmp_path / "out" / "residuals_F444W.fits") as h:
+        assert [x.name for x in h[1:]] == ["DATA", "MODEL", "RESIDUAL", "CHI"]
+        assert h["CHI"].header["CTYPE1"].startswith("RA")
+
+
+def test_simulation_fit_path_rejects_all_nan_and_reads_sci(tmp_path, capsys):
+    """Issue 22: `fit SCENE --image` reads the SCI HDU and refuses an image with no usable pixel."""
+    nan = write_cutout(tmp_path / "nan.fits", np.full((5, 5), np.nan), bunit=None)
+    _fails(["fit", "single-sersic", "--image", f"F200W={nan}", "--out", str(tmp_path / "o")],
+           capsys, "--image F200W", "usable pixels")
+    from clumpylen_jax.cli import _read_fit_image
+    img, var = _read_fit_image("F200W", write_cutout(tmp_path / "s.fits", np.ones((4, 6)), bunit=None))
+    assert img.shape == (4, 6) and var is None
+
+
+def test_fit_without_clumps_reports_the_host():
+    """Issue 22: fit.ecsv's header carries the fitted host (flux, R_e, centre) with errors."""
+    import jax.numpy as jnp
+
+    from clumpylen_jax.inference.params import make_state, parametrize
+    from clumpylen_jax.inference.run import _host_meta
+    from clumpylen_jax.source import Sersic, Source
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    src = Source(bulge=Sersic(f([3.0]), f(0.2), f(1.0), f(0.7), f(0.1), f([0.01, -0.02])))
+    param = parametrize(make_state(src, 1), ["bulge.flux", "bulge.re_arcsec", "bulge.center_arcsec"])
+    meta = _host_meta(param.template, param, [0.1, 0.01, 0.002, 0.003])
+    assert meta["bulge"]["flux"] == [3.0] and meta["bulge"]["flux_err"] == [0.1]
+    assert meta["bulge"]["re_arcsec_err"] == 0.01
+    assert meta["bulge"]["center_arcsec_err"] == [0.002, 0.003]
+
+
+REAL = __import__("pathlib").Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+@pytest.mark.skipif(not (REAL / "rxj1131").is_dir(), reason="real data absent")
+def test_real_hst_cutout_with_noise_model_and_psf_extension(tmp_path, capsys):
+    """RXJ1131 F814W: e-/s without BUNIT, BKG_RMS and EXPTIME, PSF in an extension."""
+    path = str(REAL / "rxj1131" / "rxj1131_f814w.fits")
+    spec = ObservationSpec(filter="F814W", image=path, units="e-/s", zeropoint_ab=25.94,
+                           noise={"background_rms": 0.0075095, "exptime_s": 1980.0},
+                           psf=path, psf_hdu="PSF")
+    ob = read_observation(spec)
+    assert ob.frame.pixel_arcsec == pytest.approx(0.04999) and ob.frame.wcs is None
+    assert ob.mask.all() and ob.psf.array.sum() == pytest.approx(1.0)
+    assert ob.variance_for(np.ones(ob.data.shape))[0, 0] == pytest.approx(0.0075095**2 + 1 / 1980.0)
+    # without units the file is refused, naming the keyword to add
+    scene = _scene(tmp_path, [{"filter": "F814W", "image": path,
+                               "noise": {"background_rms": 0.0075, "exptime_s": 1980.0}}])
+    _fails(["fit", scene, "--out", str(tmp_path / "o")], capsys, "BUNIT", "rxj1131_f814w.fits")
+
+
+@pytest.mark.skipif(not (REAL / "abell_s1063_sys4_im1").is_dir(), reason="real data absent")
+def test_real_jwst_cutouts_read_in_mjy_sr_with_pixscale():
+    d = REAL / "abell_s1063_sys4_im1"
+    obs = [read_observation(ObservationSpec(filter=f.upper(), image=str(d / f"s1063_sys4_im1_{f}.fits"),
+                                            psf=str(d / f"psf_webbpsf_{f}.fits")))
+           for f in ("f115w", "f150w", "f200w")]
+    # 1 MJy/sr over a (0.03123″)² pixel: ZP = −2.5 log10(10⁶ Ω / 3631)
+    omega = (0.031230659851709842 / 206264.80624709636) ** 2
+    for ob in obs:
+        assert ob.zeropoint_ab == pytest.approx(-2.5 * np.log10(1e6 * omega / 3631.0), abs=1e-9)
+        assert ob.units_how == "MJy/sr x pixel_arcsec^2" and ob.mask.sum() == 120 * 120
+    fr = fit_frame([o.frame for o in obs], [o.name for o in obs])
+    assert all(g == fr.grids[0] for g in fr.grids)

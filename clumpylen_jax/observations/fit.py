@@ -30,6 +30,7 @@ import time
 from typing import Optional
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,6 +42,7 @@ from ..inference.transforms import IDENTITY, LOG, Transform
 from ..inference.uncertainty import fisher_uncertainty
 from ..model import Accuracy, Band, build_model
 from ..source import Clumps, Sersic, Source
+from .lm import lm_fit
 
 HOST_N = (0.3, 8.0)          # host Sérsic index range
 HOST_Q_MIN = 0.08            # thinnest host (an arc seen edge-on is thin)
@@ -178,17 +180,47 @@ def _data(model, observations, mu=None):
                      [ob.mask.astype(float) for ob in observations])
 
 
+class _StageResult(eqx.Module):
+    state: object
+    x: jnp.ndarray
+    uncertainty: object
+
+
+def _uncertainty_from_jacobian(param, u, jac):
+    """Fisher covariance in physical x from the whitened-residual Jacobian in u (dx/du is
+    diagonal: every transform is elementwise)."""
+    from ..inference.uncertainty import Uncertainty, safe_inverse
+    x, dxdu = jax.jvp(param.physical_vector, (u,), (jnp.ones_like(u),))
+    jx = jac / jnp.where(dxdu != 0, dxdu, jnp.finfo(u.dtype).tiny)
+    return Uncertainty(param.labels, x, safe_inverse(jx.T @ jx))
+
+
 def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
-              max_steps=200):
-    """One LM fit; appends a record to `steps`; returns (state, param, result, data, μ)."""
+              max_steps=200, solver="lm"):
+    """One fit; appends a record to `steps`; returns (result, param, data, μ).
+
+    solver: "lm" (lm.py: one Jacobian per step, errors from the last one) or
+    "optimistix-lm" / "optimistix-bfgs" (then a Fisher matrix): compared in
+    benchmarks/bench_optimizers.py."""
     t0 = time.perf_counter()
+    c0 = time.process_time()
     data = _data(model, observations, mu)
     state0 = make_state(source, len(observations), background_counts_per_s=background)
     param = parametrize(state0, free)
-    res = fit_map(model, data, param, method="lm", max_steps=max_steps, rtol=1e-6, atol=1e-6)
+    if solver == "lm":
+        r = lm_fit(model, data, param, param.initial(), int(max_steps))
+        unc = _uncertainty_from_jacobian(param, r.u, r.jacobian)
+        res = _StageResult(param.state(r.u), unc.x, unc)
+        n_steps, ok = int(r.n_steps), bool(r.success)
+    else:
+        method = {"optimistix": "lm", "optimistix-lm": "lm", "optimistix-bfgs": "bfgs"}[solver]
+        m = fit_map(model, data, param, method=method, max_steps=max_steps, rtol=1e-6, atol=1e-6)
+        res = _StageResult(m.state, m.x, fisher_uncertainty(model, param, m.x, data))
+        n_steps, ok = int(m.n_steps), bool(m.success)
     chi2, mu = _chi2(model, data, res.state)
-    steps.append(dict(stage=name, n_steps=int(res.n_steps), success=bool(res.success),
-                      chi2=float(sum(chi2)), seconds=round(time.perf_counter() - t0, 3)))
+    steps.append(dict(stage=name, solver=solver, n_steps=n_steps, success=ok,
+                      chi2=float(sum(chi2)), seconds=round(time.perf_counter() - t0, 3),
+                      cpu_seconds=round(time.process_time() - c0, 3)))
     return res, param, data, mu
 
 
@@ -206,10 +238,10 @@ def _clump_fluxes(observations, frame, centers, mu):
     return out
 
 
-def fit_observations(observations, frame, options, clump_starts=None) -> ObservedFit:
+def fit_observations(observations, frame, options, clump_starts=None, *, solver="lm") -> ObservedFit:
     """Fit host + clumps to the observations (see the module doc). clump_starts: dict with
     "phi" [N, 2] (fit-frame arcsec) and optional "re_arcsec" [N], or None for none."""
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     timings, steps = {}, []
     make_model = make_model_factory(observations, frame, options)
     host = host_start(observations, frame) if options.host == "sersic" else None
@@ -223,7 +255,7 @@ def fit_observations(observations, frame, options, clump_starts=None) -> Observe
         timings["build_host_model"] = time.perf_counter() - t0
         res, param, data, mu = run_stage("host", model, observations, src,
                                          free_parameters(src, frame, options), steps,
-                                         max_steps=options.max_steps)
+                                         max_steps=options.max_steps, solver=solver)
         host = res.state.source.bulge
         bg = np.asarray(res.state.background_counts_per_s)
     n = 0 if clump_starts is None else len(clump_starts["phi"])
@@ -248,15 +280,15 @@ def fit_observations(observations, frame, options, clump_starts=None) -> Observe
     noise_model = any(ob.noise_exptime_s is not None for ob in observations)
     res, param, data, mu_new = run_stage("joint", model, observations, src, free, steps,
                                          mu=mu if noise_model else None, background=bg,
-                                         max_steps=options.max_steps)
+                                         max_steps=options.max_steps, solver=solver)
     if noise_model:   # σ² from the fitted model, then once more
         res, param, data, mu_new = run_stage(
             "joint (variance from model)", model, observations, res.state.source, free, steps,
-            mu=mu_new, background=res.state.background_counts_per_s, max_steps=options.max_steps)
-    t0 = time.perf_counter()
-    unc = fisher_uncertainty(model, param, res.x, data)
-    timings["errors"] = time.perf_counter() - t0
+            mu=mu_new, background=res.state.background_counts_per_s, max_steps=options.max_steps,
+            solver=solver)
+    unc = res.uncertainty
     timings["total"] = time.perf_counter() - t_start
+    timings["cpu_total"] = time.process_time() - c_start
     return ObservedFit(model, data, param, res.state, unc, tuple(mu_new),
                        all(s["success"] for s in steps), steps,
                        {k: round(v, 3) for k, v in timings.items()}, n)

@@ -63,6 +63,29 @@ def _auto_available():
         return False
 
 
+def auto_starts(observations, frame, scene) -> dict:
+    """Clumps found and counted in the data by `inference.auto.fit_without_truth` (its seeding,
+    criterion and multi-start), on this module's model of the data's pixels; its clumps then
+    start the joint fit here, which gives the reported answers."""
+    import dataclasses
+
+    from ..inference.auto import AutoOptions, fit_without_truth
+    from .fit import make_model_factory
+    opts = scene.fit
+    wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
+                  clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps)
+    names = {f.name for f in dataclasses.fields(AutoOptions)}
+    auto = fit_without_truth(make_model_factory(observations, frame, opts),
+                             [o.data for o in observations], [o.variance for o in observations],
+                             [o.mask for o in observations],
+                             zeropoints_ab={o.name: o.zeropoint_ab for o in observations},
+                             options=AutoOptions(**{k: v for k, v in wanted.items() if k in names}))
+    cl = auto.state.source.clumps
+    if cl is None or cl.count == 0:
+        return None
+    return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float)}
+
+
 def fit_observation_scene(scene, out_dir=None, *, progress=None):
     """Fit a scene with [[observations]] (a path or an ObservationScene); write the files to
     out_dir (None: nothing written). Returns (fit, table, host, files)."""
@@ -77,7 +100,7 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
             raise ConfigError("fit.clumps", "auto", "a catalogue path of starting guesses or "
                               "\"none\": finding clumps without a catalogue (inference.auto) is "
                               "not available in this build yet")
-        raise ConfigError("fit.clumps", "auto", "a catalogue path or \"none\" (auto: not wired)")
+        starts = auto_starts(obs, frame, scene)
     elif opts.clumps != "none":
         starts = catalogue_starts(opts.clumps, frame)
     read_s = time.perf_counter() - t0
