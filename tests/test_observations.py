@@ -422,3 +422,64 @@ def test_real_jwst_cutouts_read_in_mjy_sr_with_pixscale():
         assert ob.units_how == "MJy/sr x pixel_arcsec^2" and ob.mask.sum() == 120 * 120
     fr = fit_frame([o.frame for o in obs], [o.name for o in obs])
     assert all(g == fr.grids[0] for g in fr.grids)
+
+
+def test_ds9_region_mask_leaves_pixels_out(tmp_path):
+    sci = np.random.default_rng(4).normal(size=(30, 30))
+    path = write_cutout(tmp_path / "m.fits", sci, np.ones_like(sci), extra={"PIXSCALE": 0.03})
+    reg = tmp_path / "star.reg"
+    reg.write_text("# Region file format: DS9\nimage\ncircle(11,21,3)\n")   # 1-based centre
+    ob = read_observation(ObservationSpec(filter="F150W", image=path, mask=str(reg)))
+    assert not ob.mask[20, 10] and ob.mask[20, 20] and 20 < (~ob.mask).sum() < 40
+
+
+def test_local_lens_maps_image_ellipses_to_the_source_plane():
+    """β = A θ: a round image of R_e r behind pure convergence κ is a round source of R_e
+    (1 − κ) r; behind shear γ1 it is an ellipse of axes (1 − κ ∓ γ1) r along β1/β2."""
+    from clumpylen_jax.observations.answers import _ellipse_through
+    from clumpylen_jax.observations.config import LocalLens
+    lens = LocalLens(0.6, (0.0, 0.0))
+    re, q, _ = _ellipse_through(np.asarray(lens.matrix), 0.1, 1.0, 0.0)
+    assert re == pytest.approx(0.04) and q == pytest.approx(1.0)
+    assert lens.magnification == pytest.approx(1 / 0.4**2)
+    lens = LocalLens(0.5, (0.2, 0.0))                      # A = diag(0.3, 0.7)
+    re, q, pa = _ellipse_through(np.asarray(lens.matrix), 0.1, 1.0, 0.0)
+    assert re == pytest.approx(0.07) and q == pytest.approx(0.3 / 0.7)
+    assert abs(np.sin(pa)) == pytest.approx(1.0)           # major axis along β2
+
+
+@pytest.mark.slow
+def test_clump_that_grows_from_1_to_5_pixels_matches_a_start_at_5(tmp_path):
+    """Issue 17 item 2: stamps are built for the R_e bound, so a clump started at R_e = 1 px
+    that converges to 5 px is not truncated: the same answer as a start at 5 px."""
+    import jax.numpy as jnp
+
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.fit import fit_observations, make_model_factory
+    from clumpylen_jax.observations.run import read_scene_data
+    from clumpylen_jax.observations.config import load_observation_scene
+    from clumpylen_jax.source import Clumps, Source
+
+    pix, shape = 0.03, (36, 36)
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    truth = Source(clumps=Clumps(center_arcsec=f([[0.01, -0.02]]), flux=f([[2.0]]),
+                                 re_arcsec=f([5 * pix]), n=f([1.0]), q=f([1.0]), pa_rad=f([0.0])))
+    path = write_cutout(tmp_path / "c.fits", np.zeros(shape), np.full(shape, 0.01),
+                        extra={"PIXSCALE": pix})
+    scene = load_observation_scene(_scene(tmp_path, [{"filter": "F150W", "image": path}],
+                                          fit='host = "none"\nclumps = "none"\n'))
+    obs, frame = read_scene_data(scene)
+    opts = FitOptions(host="none", clumps="none", clump_re_max_arcsec=0.3)
+    img = np.asarray(make_model_factory(obs, frame, opts)(truth).band_images(truth)[0])
+    rng = np.random.default_rng(5)
+    obs = [__import__("dataclasses").replace(obs[0], data=img + rng.normal(0, 0.01, shape))]
+    answers = []
+    for re0 in (1 * pix, 5 * pix):
+        fit = fit_observations(obs, frame, opts, {"phi": np.array([[0.02, 0.0]]),
+                                                  "re_arcsec": np.array([re0])})
+        answers.append((float(fit.state.source.clumps.re_arcsec[0]),
+                        float(fit.state.source.clumps.flux[0, 0])))
+        assert fit.success
+    (re_a, f_a), (re_b, f_b) = answers
+    assert re_a == pytest.approx(re_b, rel=1e-4) and f_a == pytest.approx(f_b, rel=1e-4)
+    assert re_a == pytest.approx(5 * pix, rel=0.1)

@@ -63,7 +63,9 @@ def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-
         r_t, J_t = r_and_j(s["trial"])
         c_t = jnp.sum(r_t**2)
         accept = jnp.isfinite(c_t) & (c_t <= s["chi2"])
-        small = accept & (s["chi2"] - c_t <= rtol * c_t)
+        # converged: a step close to Gauss–Newton (not one shrunk by a large λ after
+        # rejections, which gains little anywhere) that gained almost nothing
+        small = accept & (s["chi2"] - c_t <= rtol * c_t) & (s["lam"] <= 1.0)
         keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
         u, r, J, chi2 = (keep(s["trial"], s["u"]), keep(r_t, s["r"]), keep(J_t, s["J"]),
                          keep(c_t, s["chi2"]))

@@ -23,6 +23,14 @@ def read_scene_data(scene: ObservationScene):
     """(observations, frame): every band read and checked, and placed in one fit frame."""
     obs = [read_observation(s) for s in scene.observations]
     frame = fit_frame([o.frame for o in obs], [o.name for o in obs], [o.path for o in obs])
+    if scene.z_source is not None and len(obs) >= 2:   # masses need every filter's throughput
+        from ..filters import load_filter
+        for o in obs:
+            try:
+                load_filter(o.name)
+            except ConfigError as exc:
+                raise ConfigError(f"observations[{o.name}].filter", o.name,
+                                  f"a known filter for masses at z_source ({exc.expected})") from None
     return obs, frame
 
 
