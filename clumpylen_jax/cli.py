@@ -225,6 +225,14 @@ def _cmd_fit(args) -> int:
                               f"the scene's detector grid for {band}, shape {shapes[band]}")
     order = [lay.name for lay in prep.model.layouts]
     out = os.path.abspath(args.out)
+    if args.method == "map":
+        # no catalogue: clumps found, seeded and counted from the images (inference/auto.py)
+        from .inference.auto_run import run_auto_fit
+        run_auto_fit(prep, [data[b] for b in order],
+                     [variances[b] for b in order] if variances else None, out_dir=out)
+        if not args.quiet:
+            print(f"wrote {out} (fit.ecsv, fit_steps.json, residuals)")
+        return EXIT_OK
     from .inference.params import default_free
     has_clumps = prep.source.clumps is not None and prep.source.clumps.count > 0
     free = default_free(prep.source, host_fields=() if has_clumps else

@@ -1,0 +1,614 @@
+"""Fit clumps without knowing the answer: host first, clumps found, seeded and counted.
+
+    fit_without_truth(make_model, data, variances, masks=None, *, host_start=None, lens=None,
+                      zeropoints_ab=None, options=AutoOptions()) -> AutoFit
+
+1. The smooth light: one Sérsic (or the components of `host_start`) and a background
+   level per band, started from the data's moments (`seeding.host_from_moments`) and
+   fitted alone (every clump slot inactive).
+2. Candidates: peaks of the matched-filtered S/N of the residual in the stack of the
+   finest-pixel bands, with aperture fluxes and moment sizes; through a lens, mapped to
+   the source plane and merged when they are images of one clump (`seeding`).
+3. Counting: at each step the `n_starts` best remaining candidates are each tried in the
+   next free slot (vmapped Levenberg–Marquardt over the whole model, every active clump
+   and the host free); the best is kept when the criterion accepts it, and candidates
+   are found again in the new residual (a faint clump behind a bright one shows up only
+   once the bright one is modelled). Stop at `max_clumps` or at the first rejection.
+   Then clumps whose removal (without refit, which can only flatter them) the criterion
+   would accept are removed, and the final configuration is refitted from `n_starts`
+   perturbed starts (best kept, spread reported).
+4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
+   `flag` (0 = fine; bits in `FLAGS`) and blend columns.
+
+Criterion (`AutoOptions.criterion`), with k = B + 3 parameters per clump (fluxes, β, R_e;
+B + 5 with q and PA) and n the number of fitted pixels:
+- "bic": ΔBIC = k ln n − 2 Δln L; a clump is kept when ΔBIC < −threshold (default 0:
+  BIC itself prefers it; its penalty is already a ≈ 7σ detection for 10⁴ pixels and
+  4 parameters, so no extra margin is needed);
+- "lr": likelihood ratio 2 Δln L > threshold (default 36: a 6σ single-parameter
+  equivalent, above the ≈ 4.5σ highest noise peak of a 10⁴-pixel field).
+
+No recompiles: the model has a fixed capacity of `max_clumps` slots (`capacity.py`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError, require
+from ..source import Clumps, Sersic, Source
+from . import capacity, seeding
+from .catalog import fit_table
+from .likelihood import make_data
+from .params import Free, FitState, Parametrization, make_state, parametrize
+from .transforms import Transform
+from .uncertainty import Uncertainty, safe_inverse
+
+CRITERIA = ("bic", "lr")
+DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
+RE_MAX_PIXELS = 2.0        # default upper bound of clump R_e: 2 finest detector pixels
+LOCAL_SLOTS = 3            # clumps free in a counting step: the new one and its 2 nearest
+TOL = 1e-6                 # Levenberg–Marquardt rtol and atol
+RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the upper one
+CLUMP_Q_RANGE = (0.2, 1.0)
+HOST_N_RANGE = (0.3, 6.0)
+LOG = logging.getLogger(__name__)
+FLAGS = {"not_converged": 1, "re_at_upper_bound": 2, "position_at_box_edge": 4,
+         "unstable_across_starts": 8}
+
+
+@dataclasses.dataclass(frozen=True)
+class AutoOptions:
+    """Settings of `fit_without_truth` (the scene's [fit] table); defaults here only.
+
+    max_clumps: capacity (slots compiled once) and the most clumps kept.
+    criterion: "bic" or "lr" (module doc).  threshold: None: DEFAULT_THRESHOLD[criterion].
+    n_starts: starts per step (candidates tried at once) and for the final refit.
+    re_max_arcsec: upper bound of clump R_e (None: RE_MAX_PIXELS finest detector pixels).
+    seed: of the final perturbed starts.  clump_n: Sérsic index of every clump (fixed).
+    detect_snr: candidates are matched-filtered S/N peaks above it.
+    max_steps: Levenberg–Marquardt steps per fit.
+    fit_shape: also fit each clump's q and PA (else round: most clumps are unresolved, and
+        q, PA of an unresolved clump are degenerate directions that slow every fit).
+    """
+
+    max_clumps: int = 20
+    criterion: str = "bic"
+    threshold: Optional[float] = None
+    n_starts: int = 4
+    re_max_arcsec: Optional[float] = None
+    seed: int = 0
+    clump_n: float = 0.5
+    detect_snr: float = 4.0
+    max_steps: int = 40
+    fit_shape: bool = False
+
+    def validate(self) -> "AutoOptions":
+        require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
+                "fit.max_clumps", self.max_clumps, "an integer in [1, 1000]")
+        require(self.criterion in CRITERIA, "fit.criterion", self.criterion, '"bic" or "lr"')
+        require(self.threshold is None or np.isfinite(self.threshold), "fit.threshold",
+                self.threshold, "a finite number")
+        require(isinstance(self.n_starts, (int, np.integer)) and 1 <= self.n_starts <= 64,
+                "fit.n_starts", self.n_starts, "an integer in [1, 64]")
+        require(self.re_max_arcsec is None or (np.isfinite(self.re_max_arcsec)
+                                               and self.re_max_arcsec > 0),
+                "fit.re_max_arcsec", self.re_max_arcsec, "a radius > 0 arcsec")
+        require(0.2 <= self.clump_n <= 10, "fit.clump_n", self.clump_n, "a Sérsic index in [0.2, 10]")
+        require(self.detect_snr > 0, "fit.detect_snr", self.detect_snr, "a S/N > 0")
+        require(isinstance(self.max_steps, (int, np.integer)) and self.max_steps >= 1,
+                "fit.max_steps", self.max_steps, "an integer ≥ 1")
+        return self
+
+    @property
+    def resolved_threshold(self) -> float:
+        return DEFAULT_THRESHOLD[self.criterion] if self.threshold is None else float(self.threshold)
+
+
+@dataclasses.dataclass
+class AutoFit:
+    """What `fit_without_truth` returns.
+
+    state: the FitState with the kept clumps only.  param: the fixed-capacity
+    Parametrization (every slot).  u, active: its optimum and mask.  uncertainty: Fisher
+    errors of the free entries of kept clumps, host and background.  table: `fit_table`
+    columns + flag, n_images, blend_corr, blend_with, spread columns.  steps: one dict per
+    step.  model: the SceneModel.  log_likelihood, success: of the final fit.
+    """
+
+    state: FitState
+    param: Parametrization
+    uncertainty: Uncertainty
+    table: object
+    steps: list
+    model: object
+    u: np.ndarray
+    active: np.ndarray
+    log_likelihood: float
+    success: bool
+
+
+# ---------------------------------------------------------------------------- set-up
+
+
+def _host_source(host_start, moments, nb):
+    if host_start is not None:
+        require(host_start.bulge is not None or host_start.disk is not None, "host_start",
+                "no bulge or disk", "a Source with the smooth component(s)")
+        return Source(bulge=host_start.bulge, disk=host_start.disk)
+    m = moments
+    return Source(bulge=Sersic(jnp.asarray(m["flux"], float).reshape(nb), jnp.asarray(m["re_arcsec"]),
+                               jnp.asarray(m["n"]), jnp.asarray(m["q"]), jnp.asarray(m["pa_rad"]),
+                               jnp.asarray(m["center_arcsec"], float)))
+
+
+def _with_slots(host: Source, cap: int, nb: int, re_max: float, clump_n: float, center):
+    """host + `cap` clump slots at the largest R_e (stamps sized for the prior range)."""
+    cl = Clumps(jnp.tile(jnp.asarray(center, float)[None], (cap, 1)), jnp.full((cap, nb), 1e-6),
+                jnp.full(cap, re_max), jnp.full(cap, clump_n), jnp.ones(cap), jnp.zeros(cap))
+    return Source(bulge=host.bulge, disk=host.disk, clumps=cl)
+
+
+def _host_free(source: Source, box_lo, box_hi):
+    free = {}
+    for name, comp in (("bulge", source.bulge),
+                       ("disk.sersic", None if source.disk is None else source.disk.sersic)):
+        if comp is None:
+            continue
+        free[f"{name}.flux"] = True
+        free[f"{name}.re_arcsec"] = True
+        free[f"{name}.n"] = Free(True, Transform("bounded", *HOST_N_RANGE))
+        free[f"{name}.q"] = Free(True, Transform("bounded", *CLUMP_Q_RANGE))
+        free[f"{name}.pa_rad"] = True
+        free[f"{name}.center_arcsec"] = Free(True, Transform("bounded", box_lo, box_hi))
+    return free
+
+
+def _free(source: Source, re_lo, re_hi, box_lo, box_hi, fit_shape: bool):
+    free = _host_free(source, box_lo, box_hi)
+    free.update({"clumps.flux": True,
+                 "clumps.center_arcsec": Free(True, Transform("bounded", box_lo, box_hi)),
+                 "clumps.re_arcsec": Free(True, Transform("log_bounded", re_lo, re_hi))})
+    if fit_shape:
+        free.update({"clumps.q": Free(True, Transform("bounded", *CLUMP_Q_RANGE)),
+                     "clumps.pa_rad": True})
+    free["background"] = True
+    return free
+
+
+def _box(model, lens, host: Source, pad_arcsec):
+    """Square (lo, hi) bounding clump and host centres: the field's (source-plane) extent."""
+    pts = []
+    for k in range(len(model.layouts)):
+        b1, b2, _ = seeding.pixel_betas(model, k, lens)
+        pts.append(np.c_[b1.ravel(), b2.ravel()])
+    pts = np.concatenate(pts)
+    lo = float(pts.min()) - pad_arcsec
+    hi = float(pts.max()) + pad_arcsec
+    return lo, hi
+
+
+def _criterion(opts: AutoOptions, delta_lnl: float, k: int, n_pix: int):
+    """(value, accepted) of adding k parameters that raise ln L by delta_lnl."""
+    if opts.criterion == "bic":
+        v = k * np.log(n_pix) - 2.0 * delta_lnl
+        return float(v), bool(v < -opts.resolved_threshold)
+    v = 2.0 * delta_lnl
+    return float(v), bool(v > opts.resolved_threshold)
+
+
+@dataclasses.dataclass
+class _Ctx:
+    """What every step shares (made once by `_setup`)."""
+
+    model: object
+    data: object
+    param: Parametrization
+    opts: AutoOptions
+    lens: object
+    variances: list
+    masks: list
+    n_pix: int
+    k_clump: int
+    n_host: int
+    psf_sigma: np.ndarray
+    re_bounds: tuple
+    host_index: np.ndarray     # entries of u that are not clumps' (host, background)
+    slot_index: np.ndarray     # [capacity, k_clump]: entries of u of each clump slot
+
+    @property
+    def cap(self):
+        return self.opts.max_clumps
+
+
+def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptions):
+    nb = len(data)
+    require(nb >= 1 and len(variances) == nb, "variances", len(variances),
+            f"one variance map per image ({nb})")
+    data = [np.asarray(d, float) for d in data]
+    variances = [np.asarray(v, float) for v in variances]
+    masks = ([np.isfinite(d) & np.isfinite(v) & (v > 0) for d, v in zip(data, variances)]
+             if masks is None else [np.asarray(m, bool) & np.isfinite(d) for m, d in zip(masks, data)])
+    for k, (d, v, m) in enumerate(zip(data, variances, masks)):
+        require(d.shape == v.shape == m.shape, f"variances[{k}] / masks[{k}] (shape)",
+                (v.shape, m.shape), f"the image's shape {d.shape}")
+    masks = [m.astype(float) for m in masks]
+    variances = [np.where(m > 0, v, 1.0) for v, m in zip(variances, masks)]
+    data = [np.where(m > 0, d, 0.0) for d, m in zip(data, masks)]
+    # a probe model (host only, capacity 1) gives the grids, PSFs and the host moments
+    # (a lensed probe's host must land in the field: host_start, or one wide enough for any)
+    probe_src = Source(bulge=host_start.bulge, disk=host_start.disk) if host_start is not None \
+        else Source(bulge=Sersic(jnp.ones(nb), jnp.asarray(0.1 if lens is None else 100.0),
+                                 jnp.asarray(1.0), jnp.asarray(1.0), jnp.asarray(0.0), jnp.zeros(2)))
+    grids = _probe_grids(make_model, probe_src, data)
+    pix = min(g.pixel_arcsec for g in grids)
+    re_hi = float(opts.re_max_arcsec or RE_MAX_PIXELS * pix)
+    re_lo = RE_MIN_FRACTION * re_hi
+    moments, sky = seeding.host_from_moments(_GridsOnly(grids), data, variances, masks, lens)
+    host = _host_source(host_start, moments, nb)
+    center = np.asarray((host.bulge or host.disk.sersic).center_arcsec, float)
+    src = _with_slots(host, opts.max_clumps, nb, re_hi, opts.clump_n, center)
+    model = make_model(src)
+    require(tuple(model.band_names) and len(model.layouts) == nb, "make_model", len(model.layouts),
+            f"a SceneModel with {nb} bands in the order of the data")
+    lo, hi = _box(model, lens, host, 2 * re_hi)
+    state = make_state(src, nb, background_counts_per_s=sky - np.array(
+        [lay.sky_counts_per_s for lay in model.layouts]))
+    param = parametrize(state, _free(src, re_lo, re_hi, lo, hi, opts.fit_shape))
+    idata = make_data(model, data, variances, masks, kind="gaussian")
+    k_clump = nb + (5 if opts.fit_shape else 3)
+    n_host = param.size - opts.max_clumps * k_clump
+    host_index, slot_index = _index_tables(param, opts.max_clumps)
+    ctx = _Ctx(model, idata, param, opts, lens, variances, masks, idata.n_pixels, k_clump, n_host,
+               capacity.psf_sigma_pixels(model), (re_lo, re_hi), host_index, slot_index)
+    return ctx, param.initial()
+
+
+def _index_tables(param: Parametrization, cap: int):
+    """(entries of u outside the clumps, [cap, k] entries of each clump slot)."""
+    host, slots, start = [], [[] for _ in range(cap)], 0
+    for leaf in param.leaves:
+        pos = start + np.arange(leaf.size)
+        if leaf.path.startswith("clumps."):
+            per_row = int(np.prod(leaf.shape[1:])) if len(leaf.shape) > 1 else 1
+            for p, i in zip(pos, leaf.index):
+                slots[i // per_row].append(int(p))
+        else:
+            host.extend(int(p) for p in pos)
+        start += leaf.size
+    return np.asarray(host, int), np.asarray(slots, int)
+
+
+@dataclasses.dataclass
+class _GridsOnly:
+    """Stands in for a model where only the detector grids are read (before the model exists)."""
+
+    grids: list
+
+    @property
+    def layouts(self):
+        return [dataclasses.make_dataclass("L", ["grid"])(g) for g in self.grids]
+
+
+def _probe_grids(make_model, probe_src, data):
+    """Detector grids of the scene model (a host-only build: cheap, no clumps)."""
+    model = make_model(probe_src)
+    grids = [lay.grid for lay in model.layouts]
+    require(len(grids) == len(data), "make_model", len(grids),
+            f"a SceneModel with one band per image ({len(data)})")
+    for k, (g, d) in enumerate(zip(grids, data)):
+        require(tuple(g.shape) == d.shape, f"data[{k}] (shape)", d.shape,
+                f"the model's detector grid {tuple(g.shape)} (set the field of make_model)")
+    return grids
+
+
+# ---------------------------------------------------------------------------- steps
+
+
+def _fit(ctx: _Ctx, u0s, actives):
+    """Solve from each start (padded to the compiled batch n_starts by repeating the first)."""
+    s = ctx.opts.n_starts
+    u0s, actives = np.asarray(u0s), np.asarray(actives, float)
+    m = u0s.shape[0]
+    pad = np.arange(s) % m
+    t0 = time.perf_counter()
+    us, lnl, ok, steps = capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0s[pad]),
+                                              jnp.asarray(actives[pad]), TOL, TOL,
+                                              int(ctx.opts.max_steps))
+    lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
+    LOG.info("fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m, int(actives[0].sum()),
+             time.perf_counter() - t0, np.round(lnl[:m], 1), np.asarray(steps)[:m])
+    return np.asarray(us)[:m], lnl[:m], np.asarray(ok)[:m], np.asarray(steps)[:m]
+
+
+def _fit_local(ctx: _Ctx, us, slot_sets, actives):
+    """LM over host, background and the clump slots slot_sets[s] of each start only."""
+    s = ctx.opts.n_starts
+    us, actives = np.asarray(us), np.asarray(actives, float)
+    idxs = np.stack([np.concatenate([ctx.host_index, ctx.slot_index[list(sl)].ravel()])
+                     for sl in slot_sets])
+    m = us.shape[0]
+    pad = np.arange(s) % m
+    t0 = time.perf_counter()
+    out, lnl, ok, steps = capacity.solve_local_batch(
+        ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
+        jnp.asarray(actives[pad]), TOL, TOL, int(ctx.opts.max_steps))
+    lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
+    LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
+             int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
+             np.asarray(steps)[:m])
+    return np.asarray(out)[:m], lnl[:m], np.asarray(ok)[:m], np.asarray(steps)[:m]
+
+
+def _local_slots(ctx: _Ctx, u, active, new_slot: int, beta):
+    """The new slot, its nearest active slots, padded with other inactive ones: LOCAL_SLOTS."""
+    n_local = min(LOCAL_SLOTS, ctx.cap)
+    c = np.asarray(ctx.param.state(jnp.asarray(u)).source.clumps.center_arcsec)
+    d = np.where(active > 0, np.hypot(*(c - np.asarray(beta)).T), np.inf)
+    d[new_slot] = -1.0
+    near = [int(i) for i in np.argsort(d) if np.isfinite(d[i])][:n_local]
+    rest = [i for i in range(ctx.cap) if i not in near and active[i] == 0]
+    return (near + rest)[:n_local]
+
+
+def _residuals(ctx: _Ctx, u, active):
+    mu = capacity.predict(ctx.model, ctx.param, jnp.asarray(u), jnp.asarray(active, float))
+    return [np.asarray(d) - np.asarray(m) for d, m in zip(ctx.data.images, mu)]
+
+
+def _chi2_dof(ctx: _Ctx, lnl, n_active):
+    dof = max(ctx.n_pix - ctx.n_host - n_active * ctx.k_clump, 1)
+    return float(-2.0 * lnl / dof)
+
+
+def _seed_slot(ctx: _Ctx, u, slot: int, cand: seeding.Candidates, i: int):
+    """u with slot `slot` set to candidate i's source-plane values."""
+    st = ctx.param.state(jnp.asarray(u))
+    re_lo, re_hi = ctx.re_bounds
+    flux = np.asarray(cand.flux[i], float)
+    flux = np.clip(flux, 1e-3 * max(flux.max(), 1e-12), None)
+    re = float(np.clip(cand.re_arcsec[i], 3 * re_lo, 0.5 * re_hi))
+    cl = st.source.clumps
+    q, pa = (float(cand.q[i]), float(cand.pa_rad[i])) if ctx.opts.fit_shape else (1.0, 0.0)
+    cl = eqx.tree_at(lambda c: (c.center_arcsec, c.flux, c.re_arcsec, c.q, c.pa_rad), cl,
+                     (cl.center_arcsec.at[slot].set(jnp.asarray(cand.beta_arcsec[i])),
+                      cl.flux.at[slot].set(jnp.asarray(flux)), cl.re_arcsec.at[slot].set(re),
+                      cl.q.at[slot].set(q), cl.pa_rad.at[slot].set(pa)))
+    st = eqx.tree_at(lambda s: s.source.clumps, st, cl)
+    return np.asarray(ctx.param.initial(st))
+
+
+def _candidates(ctx: _Ctx, u, active):
+    return seeding.find_candidates(ctx.model, _residuals(ctx, u, active), ctx.variances, ctx.masks,
+                                   lens=ctx.lens, psf_sigma_pix=ctx.psf_sigma,
+                                   threshold_snr=ctx.opts.detect_snr,
+                                   max_candidates=max(ctx.opts.n_starts, 1))
+
+
+def _fit_host(ctx: _Ctx, u0, steps):
+    """Host and background alone (no clump active), from the moments and rescaled sizes."""
+    re_scale = np.array([1.0, 0.5, 2.0, 1.5, 0.7, 3.0])
+    starts = []
+    for s in range(ctx.opts.n_starts):
+        st = ctx.param.state(jnp.asarray(u0))
+        for name in ("bulge", "disk"):
+            comp = getattr(st.source, name)
+            if comp is None:
+                continue
+            get = (lambda x, nm=name: getattr(x.source, nm).re_arcsec) if name == "bulge" else \
+                (lambda x: x.source.disk.sersic.re_arcsec)
+            st = eqx.tree_at(get, st, get(st) * re_scale[s % re_scale.size])
+        starts.append(np.asarray(ctx.param.initial(st)))
+    active = np.zeros((len(starts), ctx.cap))
+    slots = [list(range(min(LOCAL_SLOTS, ctx.cap)))] * len(starts)
+    us, lnl, ok, n = _fit_local(ctx, np.stack(starts), slots, active)
+    b = int(np.argmax(lnl))
+    steps.append(dict(step=0, action="host", slot=-1, n_clumps=0, delta_lnL=np.nan,
+                      criterion=np.nan, accepted=True, lnL=float(lnl[b]),
+                      chi2_dof=_chi2_dof(ctx, lnl[b], 0), converged=bool(ok[b]), n_steps=int(n[b])))
+    return us[b], float(lnl[b])
+
+
+def _count(ctx: _Ctx, u, lnl, steps):
+    """Add clumps one at a time while the criterion accepts them (module doc)."""
+    active = np.zeros(ctx.cap)
+    n_images = np.zeros(ctx.cap, int)
+    while active.sum() < ctx.cap:
+        cand = _candidates(ctx, u, active)
+        if len(cand) == 0:
+            steps.append(dict(step=len(steps), action="stop", slot=-1, n_clumps=int(active.sum()),
+                              delta_lnL=np.nan, criterion=np.nan, accepted=False, lnL=lnl,
+                              chi2_dof=_chi2_dof(ctx, lnl, active.sum()), converged=True,
+                              n_steps=0, reason=f"no residual peak above S/N {ctx.opts.detect_snr}"))
+            break
+        slot = int(np.argmin(active))
+        trial = active.copy()
+        trial[slot] = 1.0
+        tries = min(len(cand), ctx.opts.n_starts)
+        LOG.info("candidates: beta %s flux %s re %s snr %s", np.round(cand.beta_arcsec[:tries], 3),
+                 np.round(cand.flux[:tries], 2), np.round(cand.re_arcsec[:tries], 4),
+                 np.round(cand.snr[:tries], 1))
+        u0s = np.stack([_seed_slot(ctx, u, slot, cand, i) for i in range(tries)])
+        sets = [_local_slots(ctx, u, active, slot, cand.beta_arcsec[i]) for i in range(tries)]
+        us, lnls, oks, n = _fit_local(ctx, u0s, sets, np.tile(trial, (tries, 1)))
+        b = int(np.argmax(lnls))
+        value, ok = _criterion(ctx.opts, lnls[b] - lnl, ctx.k_clump, ctx.n_pix)
+        steps.append(dict(step=len(steps), action="add" if ok else "reject", slot=slot,
+                          n_clumps=int(active.sum() + ok), delta_lnL=float(lnls[b] - lnl),
+                          criterion=value, accepted=ok, lnL=float(max(lnls[b], lnl) if ok else lnl),
+                          chi2_dof=_chi2_dof(ctx, lnls[b] if ok else lnl, active.sum() + ok),
+                          converged=bool(oks[b]), n_steps=int(n[b]),
+                          candidate_beta_arcsec=[float(v) for v in cand.beta_arcsec[b]],
+                          candidate_snr=float(cand.snr[b]), n_images=int(cand.n_images[b])))
+        if not ok:
+            break
+        u, lnl, active = us[b], float(lnls[b]), trial
+        n_images[slot] = int(cand.n_images[b])
+    return u, lnl, active, n_images
+
+
+def _prune(ctx: _Ctx, u, lnl, active, steps):
+    """Remove, worst first, clumps the criterion would not keep even without a refit."""
+    while active.sum() > 0:
+        masks = np.tile(active, (ctx.cap, 1)) * (1.0 - np.eye(ctx.cap))
+        without = np.asarray(capacity.log_likelihoods(ctx.model, ctx.data, ctx.param,
+                                                      jnp.asarray(u), jnp.asarray(masks)))
+        gain = np.where(active > 0, lnl - without, np.inf)
+        i = int(np.argmin(gain))
+        value, keep = _criterion(ctx.opts, float(gain[i]), ctx.k_clump, ctx.n_pix)
+        if keep:
+            break
+        active = masks[i]
+        lnl = float(without[i])
+        steps.append(dict(step=len(steps), action="remove", slot=i, n_clumps=int(active.sum()),
+                          delta_lnL=-float(gain[i]), criterion=value, accepted=True, lnL=lnl,
+                          chi2_dof=_chi2_dof(ctx, lnl, active.sum()), converged=True, n_steps=0))
+    return lnl, active
+
+
+def _final(ctx: _Ctx, u, active, steps):
+    """Refit from n_starts perturbed starts (the first unperturbed); best kept, spread kept."""
+    rng = np.random.default_rng(ctx.opts.seed)
+    s = ctx.opts.n_starts
+    eps = rng.normal(0.0, 0.1, (s, u.size))
+    eps[0] = 0.0
+    us, lnls, oks, n = _fit(ctx, u[None] + eps, np.tile(active, (s, 1)))
+    b = int(np.argmax(lnls))
+    steps.append(dict(step=len(steps), action="final", slot=-1, n_clumps=int(active.sum()),
+                      delta_lnL=np.nan, criterion=np.nan, accepted=True, lnL=float(lnls[b]),
+                      chi2_dof=_chi2_dof(ctx, lnls[b], active.sum()), converged=bool(oks[b]),
+                      n_steps=int(n[b]), starts_lnL=[float(v) for v in lnls]))
+    return us, lnls, oks, b
+
+
+def _spread(ctx: _Ctx, us, lnls, active):
+    """Per slot, the spread (std) across starts within Δln L < 2 of the best of β (arcsec)
+    and of ln flux in the first band."""
+    near = lnls >= lnls.max() - 2.0
+    cents, lfl = [], []
+    for u in us[near]:
+        cl = ctx.param.state(jnp.asarray(u)).source.clumps
+        cents.append(np.asarray(cl.center_arcsec))
+        lfl.append(np.log(np.maximum(np.asarray(cl.flux[:, 0]), 1e-300)))
+    cents, lfl = np.stack(cents), np.stack(lfl)
+    return np.hypot(*cents.std(axis=0).T), lfl.std(axis=0), int(near.sum())
+
+
+def _uncertainty(ctx: _Ctx, u, active):
+    """Fisher errors of the host, background and kept clumps' entries (NaN elsewhere)."""
+    x = ctx.param.physical_vector(jnp.asarray(u))
+    fisher = np.asarray(capacity.masked_fisher(ctx.model, ctx.data, ctx.param, x,
+                                               jnp.asarray(active, float)))
+    keep = np.array([not lab.startswith("clumps.") or active[int(lab.split("[")[1].split(",")[0].rstrip("]"))] > 0
+                     for lab in ctx.param.labels])
+    cov = np.full(fisher.shape, np.nan)
+    cov[np.ix_(keep, keep)] = np.asarray(safe_inverse(jnp.asarray(fisher[np.ix_(keep, keep)])))
+    return Uncertainty(ctx.param.labels, x, jnp.asarray(cov)), keep
+
+
+def _take(tree, idx):
+    return jax.tree_util.tree_map(lambda a: a[idx] if eqx.is_array(a) else a, tree)
+
+
+def _compact(state: FitState, idx) -> FitState:
+    """The state with only the clump rows idx."""
+    return eqx.tree_at(lambda s: s.source.clumps, state, _take(state.source.clumps, idx))
+
+
+def _blends(unc: Uncertainty, labels, idx, band=0):
+    """Per kept clump: max |corr| of its flux (first band) with another kept clump's, and which."""
+    pos = {lab: i for i, lab in enumerate(labels)}
+    fi = [pos[f"clumps.flux[{s},{band}]"] for s in idx]
+    cov = np.asarray(unc.cov)[np.ix_(fi, fi)]
+    e = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = np.abs(cov / np.outer(e, e))
+    np.fill_diagonal(corr, 0.0)
+    if len(idx) < 2:
+        return np.zeros(len(idx)), np.full(len(idx), -1)
+    return corr.max(axis=1), corr.argmax(axis=1)
+
+
+def _table(ctx, state, unc, idx, ok, spread, n_images, zeropoints_ab):
+    err = _compact(ctx.param.scatter(np.asarray(unc.err), fill=np.nan), idx)
+    t = fit_table(_compact(state, idx), err, band_names=ctx.model.band_names,
+                  zeropoints_ab=zeropoints_ab)
+    if not len(idx):
+        for name in ("flag", "n_images", "blend_corr", "blend_with", "spread_beta_arcsec",
+                     "spread_lnflux", "slot"):
+            t[name] = np.zeros(0)
+        return t
+    re_lo, re_hi = ctx.re_bounds
+    cl = _take(state.source.clumps, idx)
+    lo, hi = next(l.transform for l in ctx.param.leaves if l.path == "clumps.center_arcsec").lo, \
+        next(l.transform for l in ctx.param.leaves if l.path == "clumps.center_arcsec").hi
+    c = np.asarray(cl.center_arcsec)
+    edge = (np.min(np.minimum(c - lo, hi - c), axis=1) < 1e-3 * (hi - lo))
+    beta_err = np.hypot(np.asarray(t["beta1_arcsec_err"]), np.asarray(t["beta2_arcsec_err"]))
+    flag = np.where(ok, 0, FLAGS["not_converged"])
+    flag = flag | np.where(np.asarray(cl.re_arcsec) > 0.99 * re_hi, FLAGS["re_at_upper_bound"], 0)
+    flag = flag | np.where(edge, FLAGS["position_at_box_edge"], 0)
+    flag = flag | np.where(spread[0][idx] > np.maximum(3 * beta_err, 1e-9),
+                           FLAGS["unstable_across_starts"], 0)
+    corr, partner = _blends(unc, ctx.param.labels, idx)
+    t["flag"] = flag.astype(int)
+    t["n_images"] = n_images[idx]
+    t["blend_corr"] = corr
+    t["blend_with"] = np.where(corr > 0, partner, -1)
+    t["spread_beta_arcsec"] = spread[0][idx]
+    t["spread_lnflux"] = spread[1][idx]
+    t["slot"] = np.asarray(idx)
+    return t
+
+
+def fit_without_truth(make_model, data, variances, masks=None, *, host_start=None, lens=None,
+                      zeropoints_ab=None, options: AutoOptions = AutoOptions()) -> AutoFit:
+    """Find, seed, count and fit the clumps of images without any catalogue (module doc).
+
+    make_model(source: Source) -> SceneModel whose bands are in the order of `data` (its
+        detector grids must match the images: give it a fixed field). For a lensed scene it
+        must render clumps anywhere without a rebuild: accuracy source_mode "analytic"
+        (`lensed_fit_accuracy`).
+    data, variances: sequences of 2-D arrays (counts/s per pixel, the model's units; sky
+        subtracted or not: a background level per band is fitted).  masks: sequences of
+        bool arrays, True = pixel used (None: every finite pixel with σ² > 0).
+    host_start: a Source with the smooth component(s) as a start, or None (one Sérsic
+        from the data's moments).  lens: the lens (``deflection(θ1, θ2)``) through which
+        candidates are mapped to the source plane, or None.
+    zeropoints_ab: {band: AB zero point} for mag columns.  options: `AutoOptions`.
+    """
+    opts = options.validate()
+    ctx, u0 = _setup(make_model, data, variances, masks, host_start, lens, opts)
+    if ctx.model.lensed:
+        require(ctx.model.accuracy.source_mode == "analytic", "make_model (accuracy.source_mode)",
+                ctx.model.accuracy.source_mode, '"analytic" for a lensed scene (clumps that '
+                'move must render anywhere without a rebuild; see lensed_fit_accuracy)')
+    steps = []
+    u, lnl = _fit_host(ctx, u0, steps)
+    u, lnl, active, n_images = _count(ctx, u, lnl, steps)
+    lnl, active = _prune(ctx, u, lnl, active, steps)
+    us, lnls, oks, b = _final(ctx, u, active, steps)
+    u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
+    spread = _spread(ctx, us, lnls, active)
+    unc, _ = _uncertainty(ctx, u, active)
+    state = capacity.masked(ctx.param.state(jnp.asarray(u)), active)
+    idx = np.nonzero(active > 0)[0]
+    table = _table(ctx, state, unc, idx, np.full(idx.size, ok), spread, n_images, zeropoints_ab)
+    table.meta.update({"method": "auto", "criterion": opts.criterion,
+                       "threshold": opts.resolved_threshold, "log_likelihood": lnl,
+                       "converged": ok, "n_pixels": ctx.n_pix, "max_clumps": opts.max_clumps,
+                       "starts_lnL": [float(v) for v in lnls], "starts_near_best": spread[2],
+                       "re_bounds_arcsec": list(ctx.re_bounds)})
+    return AutoFit(_compact(state, idx), ctx.param, unc, table, steps, ctx.model, u, active, lnl, ok)
+
+
+def lensed_fit_accuracy(accuracy):
+    """The accuracy a lensed `make_model` needs here: clumps evaluated at every ray."""
+    return dataclasses.replace(accuracy, source_mode="analytic")

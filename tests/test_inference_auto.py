@@ -1,0 +1,121 @@
+"""fit_without_truth: clumps found, seeded and counted from the image alone (issue 18)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import clumpylen_jax  # noqa: F401
+from clumpylen_jax.errors import ConfigError
+from clumpylen_jax.inference import auto
+from clumpylen_jax.inference.auto import AutoOptions, fit_without_truth
+from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands
+from clumpylen_jax.inference.seeding import Candidates
+from clumpylen_jax.model import build_model
+from clumpylen_jax.pixels import Grid
+from clumpylen_jax.source import Clumps, Sersic, Source
+
+PIX = 0.03
+NPIX = 41
+HALF = 0.5 * NPIX * PIX
+FIELD = ((-HALF, HALF), (-HALF, HALF))
+ACC = dataclasses.replace(TOY_ACCURACY, psf_oversampling=3, exact_core=3)
+BANDS = toy_bands(1, psf_sigma_pix=1.0)
+HOST = Sersic(jnp.array([40.0]), jnp.asarray(0.25), jnp.asarray(1.0), jnp.asarray(0.7),
+              jnp.asarray(0.4), jnp.zeros(2))
+CENTERS = np.array([[-0.2, 0.1], [0.2, -0.15], [0.05, 0.25]])
+CLUMPS = Clumps(jnp.asarray(CENTERS), jnp.array([[4.0], [3.0], [2.0]]), jnp.array([0.02, 0.04, 0.03]),
+                jnp.full(3, 0.5), jnp.array([0.8, 0.9, 0.7]), jnp.array([0.3, 1.0, -0.5]))
+
+
+def make_model(src):
+    return build_model(src, BANDS, field_arcsec=FIELD, accuracy=ACC)
+
+
+def _observe(truth, seed):
+    noisy, _, var = make_model(truth).observe(truth, jax.random.key(seed))
+    return [np.asarray(noisy[0])], [np.asarray(var[0])]
+
+
+def test_options_are_checked_before_any_work():
+    with pytest.raises(ConfigError, match="fit.criterion"):
+        fit_without_truth(make_model, [np.zeros((NPIX, NPIX))], [np.ones((NPIX, NPIX))],
+                          options=AutoOptions(criterion="aic"))
+    with pytest.raises(ConfigError, match="data"):
+        fit_without_truth(make_model, [np.zeros((5, 5))], [np.ones((5, 5))])
+
+
+def _blobs(centers_pix, fluxes, sigma=1.2, shape=(NPIX, NPIX)):
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    img = np.zeros(shape)
+    for (r, c), f in zip(centers_pix, fluxes):
+        img += f * np.exp(-0.5 * ((yy - r) ** 2 + (xx - c) ** 2) / sigma**2) / (2 * np.pi * sigma**2)
+    return img
+
+
+def test_candidates_from_residual_peaks():
+    """Three blobs in noise: three candidates at their pixels, brightest first, fluxes close."""
+    from clumpylen_jax.inference.seeding import find_candidates
+    grid_model = auto._GridsOnly([Grid.covering(*FIELD, PIX)])
+    rng = np.random.default_rng(0)
+    sigma = 0.02
+    pix = [(10, 12), (25, 30), (30, 8)]
+    img = _blobs(pix, [4.0, 2.0, 1.0]) + rng.normal(0, sigma, (NPIX, NPIX))
+    cand = find_candidates(grid_model, [img], [np.full(img.shape, sigma**2)],
+                           [np.ones(img.shape)], psf_sigma_pix=np.array([1.2]),
+                           threshold_snr=5.0, max_candidates=5)
+    assert len(cand) == 3
+    assert [tuple(p) for p in cand.theta_pix] == pix
+    assert np.all(np.abs(cand.flux[:, 0] / np.array([4.0, 2.0, 1.0]) - 1) < 0.35)
+    g = grid_model.layouts[0].grid
+    assert np.allclose(cand.beta_arcsec[0], [g.x_centers()[12], g.y_centers()[10]])
+
+
+def test_images_of_one_source_clump_are_merged():
+    """Two candidates whose β agree within the tolerance are one clump (fluxes de-magnified)."""
+    from clumpylen_jax.inference.seeding import merge_images
+    beta = np.array([[0.1, 0.0], [0.1004, 0.0003], [0.3, 0.2]])
+    det = np.array([0.1, 0.1, 0.5])      # |μ| = 10, 10, 2
+    groups = merge_images(beta, det, np.array([20.0, 12.0, 8.0]), 2.0, 0.03)
+    assert groups == [[0, 1], [2]]
+
+
+@pytest.mark.slow
+def test_three_clumps_found_from_a_generic_start():
+    """Host + 3 clumps, nothing known: 3 clumps kept, each within 1 pixel of a true one."""
+    data, var = _observe(Source(bulge=HOST, clumps=CLUMPS), 1)
+    fit = fit_without_truth(make_model, data, var, options=AutoOptions(max_clumps=5, n_starts=3))
+    t = fit.table
+    assert len(t) == 3, fit.steps
+    got = np.c_[t["beta1_arcsec"], t["beta2_arcsec"]]
+    d = np.hypot(*(got[:, None, :] - CENTERS[None]).transpose(2, 0, 1))
+    assert np.all(d.min(axis=0) < PIX), d
+    assert sorted(np.argmin(d, axis=1)) == [0, 1, 2]
+    assert [s["action"] for s in fit.steps][:4] == ["host", "add", "add", "add"]
+    assert fit.steps[4]["action"] in ("reject", "stop")
+    assert np.all(np.isfinite(t["flux_B0_err"])) and np.all(t["flux_B0_err"] > 0)
+    assert "flag" in t.colnames and "blend_corr" in t.colnames
+
+
+@pytest.mark.slow
+def test_start_size_does_not_change_the_optimum():
+    """Regression: a clump started at R_e = 1 px that grows to 5 px lands where one started at
+    5 px does (its stamp is sized for the prior range, not for the start)."""
+    big = Clumps(jnp.array([[0.03, -0.02]]), jnp.array([[30.0]]), jnp.array([5 * PIX]),
+                 jnp.full(1, 0.5), jnp.ones(1), jnp.zeros(1))
+    data, var = _observe(Source(bulge=HOST, clumps=big), 2)
+    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX).validate()
+    ctx, u0 = auto._setup(make_model, data, var, None, None, None, opts)
+    u_host, _ = auto._fit_host(ctx, u0, [])
+
+    def cand(re):
+        return Candidates(np.array([[0.0, 0.0]]), np.array([[20.0]]), np.array([re]), np.ones(1),
+                          np.zeros(1), np.ones(1), np.ones(1, int), np.zeros((1, 2), int))
+    starts = np.stack([auto._seed_slot(ctx, u_host, 0, cand(r), 0) for r in (1 * PIX, 5 * PIX)])
+    us, lnl, ok, _ = auto._fit(ctx, starts, np.ones((2, 1)))
+    x = [np.asarray(ctx.param.state(jnp.asarray(u)).source.clumps.re_arcsec)[0] for u in us]
+    assert np.all(ok)
+    assert abs(x[0] / (5 * PIX) - 1) < 0.15
+    assert abs(x[0] / x[1] - 1) < 1e-4 and abs(lnl[0] - lnl[1]) < 1e-3
