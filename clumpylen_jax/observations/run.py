@@ -80,6 +80,8 @@ def auto_starts(observations, frame, scene) -> dict:
     from ..inference.auto import AutoOptions, fit_without_truth
     from .fit import make_model_factory
     opts = scene.fit
+    if opts.max_clumps == 0:
+        return None
     wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
                   clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps)
     names = {f.name for f in dataclasses.fields(AutoOptions)}
