@@ -12,11 +12,12 @@
    second moments → R_e, q, PA; total flux per band), n = 1; clumps from
    `clump_starts` (φ positions, optional R_e) with fluxes from the residual of the
    host-only fit in a 5 × 5-pixel box.
-3. stage "host": host + background by Levenberg–Marquardt; stage "joint": host,
-   clumps (flux per band, centre, R_e [, q, PA]) and background together. With a
-   noise model, σ² = rms² + μ/t is refreshed from the model and the joint fit
+3. stage "host": host + background by Levenberg–Marquardt (lm.py); stage "joint":
+   host, clumps (flux per band, centre, R_e [, q, PA]) and background together. With
+   a noise model, σ² = rms² + μ/t is refreshed from the model and the joint fit
    rerun once.
-4. errors: the Fisher matrix in physical parameters at the optimum.
+4. errors: the Fisher matrix in physical parameters at the optimum, from the
+   solver's last Jacobian (no further compile).
 
 Clump fluxes are linear (identity transform: they may go negative, so a band
 where a clump is not detected gives an unbiased flux and an honest upper limit);

@@ -73,7 +73,7 @@ def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-
         trial, _ = _propose(u, r, J, lam)
         stuck = lam > LAMBDA_MAX
         return dict(u=u, r=r, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
-                    done=small | stuck, ok=small | (stuck & jnp.isfinite(chi2)))
+                    done=small | stuck, ok=small)
 
     s = jax.lax.while_loop(cond, body, init)
     return LMResult(s["u"], s["chi2"], s["J"], s["step"], s["ok"])
