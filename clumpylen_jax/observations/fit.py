@@ -48,6 +48,7 @@ from .lm import lm_fit
 HOST_N = (0.3, 8.0)          # host Sérsic index range
 HOST_Q_MIN = 0.08            # thinnest host (an arc seen edge-on is thin)
 CLUMP_Q_MIN = 0.2
+POSITION_BOX_PIXELS = 3.0   # clump centres stay within this many finest pixels of their start
 RESIDUAL_BOX = 2             # half-side (pixels) of the box whose residual starts a clump's flux
 
 
@@ -158,7 +159,14 @@ def free_parameters(source: Source, frame, options, *, clumps=True) -> dict:
                      "bulge.q": Free(True, Transform("bounded", HOST_Q_MIN, 1.0)),
                      "bulge.pa_rad": True, "bulge.center_arcsec": True})
     if clumps and source.clumps is not None and source.clumps.count:
-        free.update({"clumps.flux": Free(True, IDENTITY), "clumps.center_arcsec": True,
+        # each centre within a box of ±POSITION_BOX_PIXELS finest pixels around its start: a
+        # clump whose light the host takes over cannot wander off the image (seen in a mock)
+        c = np.asarray(source.clumps.center_arcsec, float).ravel()
+        box = POSITION_BOX_PIXELS * min(g.pixel_arcsec for g in frame.grids)
+        free.update({"clumps.flux": Free(True, IDENTITY),
+                     "clumps.center_arcsec": Free(True, Transform(
+                         "bounded", tuple(float(v) for v in c - box),
+                         tuple(float(v) for v in c + box))),
                      "clumps.re_arcsec": Free(True, Transform(
                          "log_bounded", options.clump_re_min_arcsec, options.clump_re_max_arcsec))})
         if options.clump_shape == "elliptical":
