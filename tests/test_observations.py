@@ -464,8 +464,8 @@ def test_clump_that_grows_from_1_to_5_pixels_matches_a_start_at_5(tmp_path):
     f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
     truth = Source(clumps=Clumps(center_arcsec=f([[0.01, -0.02]]), flux=f([[2.0]]),
                                  re_arcsec=f([5 * pix]), n=f([1.0]), q=f([1.0]), pa_rad=f([0.0])))
-    path = write_cutout(tmp_path / "c.fits", np.zeros(shape), np.full(shape, 0.01),
-                        extra={"PIXSCALE": pix})
+    path = write_cutout(tmp_path / "c.fits", np.random.default_rng(6).normal(0, 0.01, shape),
+                        np.full(shape, 0.01), extra={"PIXSCALE": pix})
     scene = load_observation_scene(_scene(tmp_path, [{"filter": "F150W", "image": path}],
                                           fit='host = "none"\nclumps = "none"\n'))
     obs, frame = read_scene_data(scene)

@@ -20,6 +20,7 @@ from ..inference.likelihood import make_residuals
 
 LAMBDA0 = 1e-3
 LAMBDA_MAX = 1e12
+DECREMENT_TOL = 1e-2      # χ² a Gauss–Newton step may still gain at a converged point
 
 
 class LMResult(eqx.Module):
@@ -72,8 +73,12 @@ def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-
         lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
         trial, _ = _propose(u, r, J, lam)
         stuck = lam > LAMBDA_MAX
+        # stuck at the largest damping: converged only if a full Gauss–Newton step would
+        # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
+        _, gn = _propose(u, r, J, 0.0)
+        at_min = -2.0 * jnp.dot(J.T @ r, gn) < DECREMENT_TOL
         return dict(u=u, r=r, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
-                    done=small | stuck, ok=small)
+                    done=small | stuck, ok=small | (stuck & at_min))
 
     s = jax.lax.while_loop(cond, body, init)
     return LMResult(s["u"], s["chi2"], s["J"], s["step"], s["ok"])
