@@ -6,6 +6,7 @@
     clumpylen simulate SCENE --out DIR [--seed N] [--bands F115W,F200W] [--no-noise] [--quiet] [--plots] [--no-cache]
     clumpylen plot DIR                       figures of a finished run
     clumpylen analyze DIR                    S/N and limiting magnitudes of a finished run
+    clumpylen fit SCENE --out DIR            fit [[observations]] (or --image BAND=FILE) with host + clumps
     clumpylen study STUDY --out DIR [--scheduler ADDRESS] [--workers N]   a study on Dask
 
 User errors (an invalid scene, a missing file, a TOML syntax error) exit with
@@ -130,7 +131,7 @@ def _cmd_simulate(args) -> int:
     return EXIT_OK
 
 
-def _parse_images(items) -> dict:
+def _parse_images(items, required=True) -> dict:
     """--image BAND=FILE arguments → {BAND: path}, checked before any computation."""
     images = {}
     for item in items or []:
@@ -139,19 +140,77 @@ def _parse_images(items) -> dict:
             raise ConfigError("--image", item, "BAND=FILE, e.g. F200W=bands/F200W.fits")
         if not os.path.isfile(path):
             raise ConfigError(f"--image {band}", path, "an existing FITS file")
-        images[band.strip().upper()] = path
-    if not images:
+        key = band.strip().upper()
+        if key in images:
+            raise ConfigError("--image", key, "each band once (it was given twice)")
+        images[key] = path
+    if not images and required:
         raise ConfigError("--image", None, "at least one BAND=FILE")
     return images
 
 
+def _read_fit_image(band: str, path: str):
+    """(image, variance or None) of a --image file: the SCI HDU, else the first 2-D image."""
+    from astropy.io import fits
+    import numpy as np
+
+    try:
+        hdul = fits.open(path, memmap=False)
+    except Exception as exc:
+        raise ConfigError(f"--image {band}", path, f"a readable FITS file ({exc})") from None
+    with hdul:
+        names = [h.name for h in hdul]
+        idx = names.index("SCI") if "SCI" in names else next(
+            (i for i, h in enumerate(hdul) if h.data is not None and np.ndim(h.data) == 2), None)
+        if idx is None or np.ndim(hdul[idx].data) != 2:
+            raise ConfigError(f"--image {band}", path, f"a FITS file with a 2-D image (HDUs: {names})")
+        var = np.asarray(hdul["VARIANCE"].data, float) if "VARIANCE" in names else None
+        return np.asarray(hdul[idx].data, float), var
+
+
+def _cmd_fit_observations(args) -> int:
+    """`clumpylen fit SCENE --out DIR` for a scene with [[observations]] (SCENE.md v2)."""
+    import dataclasses
+
+    from .observations.config import load_observation_scene
+    from .observations.run import fit_observation_scene
+
+    scene = load_observation_scene(args.scene)
+    images = _parse_images(args.image, required=False)
+    names = [o.filter for o in scene.observations]
+    for band in images:
+        if band not in names:
+            raise ConfigError("--image", band, "a filter of the scene's [[observations]]: "
+                              + ", ".join(names))
+    if images:
+        scene = dataclasses.replace(scene, observations=tuple(
+            dataclasses.replace(o, image=os.path.abspath(images.get(o.filter, o.image)))
+            for o in scene.observations))
+    if args.method != "map":
+        raise ConfigError("--method", args.method, '"map" for fits of observations (samplers: not yet)')
+    out = os.path.abspath(args.out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise ConfigError("--out", args.out, "a directory (this path is a file)")
+    say = None if args.quiet else (lambda m: print(m, file=sys.stderr))
+    fit, table, host, files = fit_observation_scene(scene, out, progress=say)
+    if not args.quiet:
+        print(f"wrote {out} ({', '.join(os.path.basename(str(f)) for f in files)}); "
+              f"{fit.n_clumps} clumps, {'converged' if fit.success else 'NOT converged'}")
+    return EXIT_OK
+
+
 def _cmd_fit(args) -> int:
     from . import scene as sc
+    from .observations.config import is_observation_scene
 
+    if os.path.isfile(args.scene) and is_observation_scene(args.scene):
+        return _cmd_fit_observations(args)
     s = _load(args.scene)
     images = _parse_images(args.image)
+    for band in images:
+        if band not in s.band_names:
+            raise ConfigError("--image", band, "a filter of the scene: " + ", ".join(s.band_names))
     s = sc.with_overrides(s, seed=args.seed, bands=list(images), noise=None)
-    from astropy.io import fits
     import numpy as np
 
     from .inference.run import run_fit
@@ -159,13 +218,18 @@ def _cmd_fit(args) -> int:
 
     data, variances = {}, {}
     for band, path in images.items():
-        with fits.open(path) as hdul:
-            data[band] = np.asarray(hdul[0].data, float)
-            if "VARIANCE" in hdul:
-                variances[band] = np.asarray(hdul["VARIANCE"].data, float)
+        data[band], var = _read_fit_image(band, path)
+        if var is not None:
+            variances[band] = var
     if variances and len(variances) != len(data):
         raise ConfigError("--image", sorted(set(data) - set(variances)),
                           "FITS files that all have a VARIANCE extension, or none")
+    for band, img in data.items():
+        usable = np.isfinite(img) & (np.isfinite(variances[band]) & (variances[band] > 0)
+                                     if band in variances else True)
+        if not np.any(usable):
+            raise ConfigError(f"--image {band}", images[band],
+                              "an image with usable pixels (all are NaN or have zero variance)")
     prep = prepare(s)
     shapes = {lay.name: lay.grid.shape for lay in prep.model.layouts}
     for band, img in data.items():
@@ -341,10 +405,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=_cmd_simulate)
 
     q = sub.add_parser("fit", help="fit the scene's clumps to observed or simulated images")
-    q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file "
-                   "(its catalogue and host are the starting point)")
+    q.add_argument("scene", metavar="SCENE", help="a scene with [[observations]] (SCENE.md v2), "
+                   "or a built-in name / .toml whose catalogue and host are the starting point")
     q.add_argument("--image", action="append", metavar="BAND=FILE",
-                   help="an image to fit (counts/s; a VARIANCE extension is used if present)")
+                   help="an image to fit (SCI HDU or the first 2-D image; a VARIANCE extension is "
+                   "used if present); with [[observations]], replaces that band's image")
     q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
     q.add_argument("--method", default="map", choices=("map", "emcee", "nuts"),
                    help="map (default), emcee or nuts")

@@ -749,7 +749,7 @@ def require_float64_mode(dtype):
 def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
                 lens_pixel_arcsec: float = D.LENS_PIXEL_ARCSEC, source_pixel_arcsec: float = D.SOURCE_PIXEL_ARCSEC,
                 accuracy: Accuracy = Accuracy(), dtype=jnp.float64,
-                ray_cache=None) -> SceneModel:
+                ray_cache=None, grids=None) -> SceneModel:
     """Make the forward model of a scene (static decisions happen here, once).
 
     source: a Source with concrete parameters (sets the traced region and stamp sizes;
@@ -760,6 +760,8 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     lens_pixel_arcsec: high-resolution lens-plane pixel.  source_pixel_arcsec: pixel of the
         source-plane grid holding the clumps (grid mode).
     ray_cache: folder keeping traced lens-plane corners between runs (`raycache`), or None.
+    grids: one `Grid` per band (detector pixels as observed data place them: each band its
+        own scale and offset), overriding field_arcsec; its pixel must be the band's.
     """
     accuracy.validate()
     source.validate()
@@ -781,8 +783,14 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     for band in bands:
         if band.psf is not None:
             psf_margin = max(psf_margin, 0.5 * max(np.shape(band.psf)) * band.psf_pixel_arcsec)
-    for band in bands:
-        if field_arcsec is not None:
+    if grids is not None:
+        require(len(grids) == len(bands) and all(
+            abs(g.pixel_arcsec - b.pixel_arcsec) <= 1e-9 * b.pixel_arcsec
+            for g, b in zip(grids, bands)), "grids", grids, "one Grid per band, of its pixel")
+    for k, band in enumerate(bands):
+        if grids is not None:
+            grid = grids[k]
+        elif field_arcsec is not None:
             grid = Grid.covering(field_arcsec[0], field_arcsec[1], band.pixel_arcsec)
         elif lens is None:
             grid = Grid.centered(center, radius + psf_margin, band.pixel_arcsec)

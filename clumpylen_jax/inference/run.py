@@ -73,6 +73,28 @@ def _write_residuals(out: Path, scene_model, data, state) -> list:
     return paths
 
 
+def _host_meta(state, param, err) -> dict:
+    """The fitted host components (flux per band, R_e, centre, n, q, PA) with 1σ errors, for
+    fit.ecsv's header: a fit without clumps still reports what it fitted."""
+    errs = dict(zip(param.labels, np.asarray(err, float)))
+    src = state.render_source()
+    out = {}
+    for name, comp in (("bulge", src.bulge), ("disk", None if src.disk is None else src.disk.sersic)):
+        if comp is None:
+            continue
+        path = "bulge" if name == "bulge" else "disk.sersic"
+        d = {}
+        for field in ("flux", "re_arcsec", "center_arcsec", "n", "q", "pa_rad"):
+            val = np.asarray(getattr(comp, field), float)
+            d[field] = val.tolist()
+            e = [errs.get(f"{path}.{field}[{','.join(map(str, i))}]") for i in np.ndindex(val.shape)]
+            if any(x is not None for x in e):
+                d[f"{field}_err"] = [float("nan") if x is None else float(x) for x in e] \
+                    if val.shape else float(e[0])
+        out[name] = d
+    return out
+
+
 def run_fit(scene_model, source_start, images, variances=None, *, free=None, method="map",
             likelihood="gaussian", mask=None, zeropoints_ab=None, background=False, n_starts=1,
             seed=0, mcmc=None, out_dir=None) -> FitRun:
@@ -121,7 +143,8 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
                       zeropoints_ab=zeropoints_ab)
     table.meta.update({"method": method, "likelihood": likelihood,
                        "map_log_posterior": float(res.log_posterior),
-                       "map_success": bool(res.success), "free": list(param.labels)})
+                       "map_success": bool(res.success), "free": list(param.labels),
+                       "host": _host_meta(state, param, err)})
     files = []
     if out_dir is not None:
         from ..io import atomic_write, write_catalog

@@ -38,15 +38,24 @@ class Transform:
     """An elementwise bijection u → x named `kind`, with bounds for the bounded kinds."""
 
     kind: str = "identity"
-    lo: float = 0.0
+    lo: float = 0.0      # a float, or a tuple: one bound per free element (hashable)
     hi: float = 1.0
+
+    # scalar bounds stay Python floats (weakly typed: float32 inputs stay float32)
+    @property
+    def _lo(self):
+        return np.asarray(self.lo, float) if isinstance(self.lo, tuple) else self.lo
+
+    @property
+    def _hi(self):
+        return np.asarray(self.hi, float) if isinstance(self.hi, tuple) else self.hi
 
     def __post_init__(self):
         if self.kind not in ("identity", "log", "bounded", "log_bounded"):
             raise ConfigError("transform", self.kind, "identity, log, bounded or log_bounded")
-        if self.kind in ("bounded", "log_bounded") and not (self.hi > self.lo):
+        if self.kind in ("bounded", "log_bounded") and not np.all(np.asarray(self.hi) > np.asarray(self.lo)):
             raise ConfigError("transform bounds", (self.lo, self.hi), "lo < hi")
-        if self.kind == "log_bounded" and not self.lo > 0:
+        if self.kind == "log_bounded" and not np.all(np.asarray(self.lo) > 0):
             raise ConfigError("transform bounds", (self.lo, self.hi), "0 < lo < hi")
 
     def forward(self, u):
@@ -57,8 +66,8 @@ class Transform:
             return jnp.exp(u)
         s = jax.nn.sigmoid(u)
         if self.kind == "bounded":
-            return self.lo + (self.hi - self.lo) * s
-        llo, lhi = np.log(self.lo), np.log(self.hi)
+            return self._lo + (self._hi - self._lo) * s
+        llo, lhi = np.log(self._lo), np.log(self._hi)
         return jnp.exp(llo + (lhi - llo) * s)
 
     def inverse(self, x):
@@ -69,10 +78,10 @@ class Transform:
         if self.kind == "log":
             return jnp.log(jnp.maximum(x, TINY))
         if self.kind == "bounded":
-            t = (x - self.lo) / (self.hi - self.lo)
+            t = (x - self._lo) / (self._hi - self._lo)
         else:
-            llo, lhi = np.log(self.lo), np.log(self.hi)
-            t = (jnp.log(jnp.maximum(x, self.lo)) - llo) / (lhi - llo)
+            llo, lhi = np.log(self._lo), np.log(self._hi)
+            t = (jnp.log(jnp.maximum(x, self._lo)) - llo) / (lhi - llo)
         t = jnp.clip(t, EDGE, 1.0 - EDGE)
         return jnp.log(t) - jnp.log1p(-t)
 
@@ -85,8 +94,8 @@ class Transform:
         # d sigmoid/du = s(1 − s); ln of it written with softplus for stability
         log_ds = -jax.nn.softplus(-u) - jax.nn.softplus(u)
         if self.kind == "bounded":
-            return np.log(self.hi - self.lo) + log_ds
-        llo, lhi = np.log(self.lo), np.log(self.hi)
+            return np.log(self._hi - self._lo) + log_ds
+        llo, lhi = np.log(self._lo), np.log(self._hi)
         return jnp.log(self.forward(u)) + np.log(lhi - llo) + log_ds
 
 

@@ -1,0 +1,19 @@
+"""Observed images in: read, check and place real JWST/HST cutouts for `clumpylen fit`.
+
+    units     image units → the AB zero point of one data unit per pixel
+    frame     one fit frame φ for every band's pixel grid; θ and RA/Dec of φ
+    read      one band: image, σ², mask, PSF, units (ObservationSpec → Observation)
+    config    [[observations]], [fit], [lens.local] from a scene file
+    fit       the joint host + clumps fit on the data's pixels (fit_observations)
+    answers   physical answers: positions, sizes, magnitudes, masses, intrinsic values
+    outputs   fit.ecsv, residuals_<FILTER>.fits, clumps.reg, summary.json, fit.png
+"""
+
+from .config import FitOptions, LocalLens, ObservationScene, load_observation_scene
+from .frame import FitFrame, fit_frame
+from .read import Observation, ObservationSpec, read_observation
+from .units import resolve_units, zeropoint_mjy_sr, zeropoint_photflam
+
+__all__ = ["FitFrame", "FitOptions", "LocalLens", "Observation", "ObservationScene",
+           "ObservationSpec", "fit_frame", "load_observation_scene", "read_observation",
+           "resolve_units", "zeropoint_mjy_sr", "zeropoint_photflam"]

@@ -1,0 +1,228 @@
+"""Observation scenes: `[[observations]]`, `[fit]`, `[scene]` and `[lens.local]` from TOML.
+
+A scene with `[[observations]]` (SCENE.md, "Fitting observed images (v2)")
+describes data to fit instead of bands to simulate. `load_observation_scene`
+checks every key (unknown ones are an error naming the nearest valid key),
+resolves paths relative to the scene file, and returns an `ObservationScene`.
+Nothing is read or computed beyond the TOML here.
+
+Beyond SCENE.md, `[fit]` takes the knobs of the fit (defaults in `FitOptions`) and
+`[lens.local]` a local lens: convergence and shear at the arc, constant over the
+cutout (`{ convergence = 0.7, shear = [0.1, -0.05] }`), through which intrinsic
+(source-plane) sizes, magnitudes, positions and magnifications are reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import tomllib
+from pathlib import Path
+from typing import Optional
+
+from ..errors import ConfigError
+from .read import ObservationSpec
+
+FIT_METHODS = ("map",)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """[fit]: what is fitted and how (one place for each default).
+
+    clumps: "auto" (found in the data, inference.auto), "none" (host only), or a
+        catalogue path of starting guesses (columns x_pix/y_pix of the first
+        observation, or ra_deg/dec_deg, or theta1_arcsec/theta2_arcsec; optional
+        re_arcsec).
+    max_clumps: most clumps "auto" may add.  method: "map" (MAP + Fisher errors).
+    clump_n: Sérsic index of the clumps (fixed).  clump_shape: "round" or "elliptical".
+    clump_re_max_arcsec: the largest clump R_e a fit may reach (the stamps are built
+        for it); clump_re_min_arcsec the smallest.
+    host: "sersic" (one smooth Sérsic, free in every band) or "none".
+    background: fit a constant level per band.  psf_oversampling: odd sub-grid factor.
+    detection_snr: a band detects a clump when flux/σ_flux ≥ this (else: upper limit).
+    """
+
+    clumps: str = "auto"
+    max_clumps: int = 20
+    method: str = "map"
+    clump_n: float = 1.0
+    clump_shape: str = "round"
+    clump_re_max_arcsec: float = 0.15
+    clump_re_min_arcsec: float = 0.002
+    host: str = "sersic"
+    background: bool = True
+    psf_oversampling: int = 1
+    detection_snr: float = 3.0
+    max_steps: int = 200
+
+    def validate(self):
+        def need(ok, key, expected):
+            if not ok:
+                raise ConfigError(f"fit.{key}", getattr(self, key), expected)
+        need(isinstance(self.clumps, str) and self.clumps, "clumps",
+             '"auto", "none" or a catalogue path')
+        need(isinstance(self.max_clumps, int) and 0 <= self.max_clumps <= 200, "max_clumps",
+             "an integer in [0, 200]")
+        need(self.method in FIT_METHODS, "method",
+             " or ".join(f'"{m}"' for m in FIT_METHODS) + " (samplers for observations: not yet)")
+        need(_num(self.clump_n) and 0.2 <= self.clump_n <= 10, "clump_n", "a Sérsic index in [0.2, 10]")
+        need(self.clump_shape in ("round", "elliptical"), "clump_shape", '"round" or "elliptical"')
+        need(_num(self.clump_re_min_arcsec) and self.clump_re_min_arcsec > 0, "clump_re_min_arcsec",
+             "a positive size (arcsec)")
+        need(_num(self.clump_re_max_arcsec) and
+             self.clump_re_min_arcsec < self.clump_re_max_arcsec <= 2.0, "clump_re_max_arcsec",
+             "a size (arcsec) above clump_re_min_arcsec and at most 2\"")
+        need(self.host in ("sersic", "none"), "host", '"sersic" or "none"')
+        need(isinstance(self.background, bool), "background", "true or false")
+        need(isinstance(self.psf_oversampling, int) and self.psf_oversampling % 2 == 1
+             and 1 <= self.psf_oversampling <= 9, "psf_oversampling", "an odd integer in [1, 9]")
+        need(_num(self.detection_snr) and self.detection_snr > 0, "detection_snr", "a positive S/N")
+        need(isinstance(self.max_steps, int) and 1 <= self.max_steps <= 10000, "max_steps",
+             "an integer in [1, 10000]")
+        return self
+
+
+@dataclasses.dataclass(frozen=True)
+class LocalLens:
+    """A lens constant over the cutout: β − β0 = A (θ − θ0), A = [[1−κ−γ1, −γ2], [−γ2, 1−κ+γ1]]."""
+
+    convergence: float
+    shear: tuple = (0.0, 0.0)
+
+    @property
+    def matrix(self):
+        k, (g1, g2) = self.convergence, self.shear
+        return ((1 - k - g1, -g2), (-g2, 1 - k + g1))
+
+    @property
+    def magnification(self) -> float:
+        (a, b), (c, d) = self.matrix
+        return 1.0 / (a * d - b * c)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationScene:
+    name: str
+    observations: tuple
+    fit: FitOptions
+    z_source: Optional[float] = None
+    seed: int = 0
+    lens: Optional[LocalLens] = None
+    cosmology: tuple = (70.0, 0.3)
+    path: Optional[str] = None
+    sps: tuple = ()                 # extra photometry.ab_magnitudes options
+
+
+def _num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_keys(table: dict, allowed, where: str):
+    for key in table:
+        if key not in allowed:
+            near = difflib.get_close_matches(key, list(allowed), n=1)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise ConfigError(f"{where}.{key}", table[key], f"one of {sorted(allowed)}{hint}")
+
+
+_OBS_KEYS = {f.name for f in dataclasses.fields(ObservationSpec)}
+_PATH_KEYS = ("image", "psf", "mask")
+
+
+def _observation(t: dict, base: Path, k: int) -> ObservationSpec:
+    if not isinstance(t, dict):
+        raise ConfigError(f"observations[{k}]", t, "a table")
+    name = t.get("filter")
+    if not isinstance(name, str) or not name.strip():
+        raise ConfigError(f"observations[{k}].filter", name, "a filter name, e.g. \"F150W\"")
+    where = f"observations[{name.upper()}]"
+    _check_keys(t, _OBS_KEYS, where)
+    if not isinstance(t.get("image"), str):
+        raise ConfigError(f"{where}.image", t.get("image"), "a FITS file path")
+    d = dict(t, filter=name.strip().upper())
+    for key in _PATH_KEYS:
+        if isinstance(d.get(key), str):
+            d[key] = str(base / d[key])
+    for key in ("error", "weight"):     # an HDU name stays a name; anything else is a path
+        v = d.get(key)
+        if isinstance(v, str) and ("/" in v or v.lower().endswith((".fits", ".fit", ".fz"))):
+            d[key] = str(base / v)
+    for key in ("pixel_arcsec", "zeropoint_ab", "psf_pixel_arcsec", "exptime_s"):
+        if key in d and not _num(d[key]):
+            raise ConfigError(f"{where}.{key}", d[key], "a number")
+    if "noise" in d and not isinstance(d["noise"], dict):
+        raise ConfigError(f"{where}.noise", d["noise"], "{ background_rms = ..., exptime_s = ... }")
+    return ObservationSpec(**d)
+
+
+def _local_lens(t) -> Optional[LocalLens]:
+    if t is None:
+        return None
+    if set(t) - {"local"}:
+        raise ConfigError("lens", sorted(t), "[lens.local] { convergence, shear } for fits of "
+                          "observations (deflection maps and cluster models: not yet)")
+    loc = t["local"]
+    _check_keys(loc, {"convergence", "shear"}, "lens.local")
+    k, g = loc.get("convergence"), loc.get("shear", [0.0, 0.0])
+    if not _num(k):
+        raise ConfigError("lens.local.convergence", k, "a number")
+    if not (isinstance(g, list) and len(g) == 2 and all(_num(x) for x in g)):
+        raise ConfigError("lens.local.shear", g, "[gamma1, gamma2]")
+    lens = LocalLens(float(k), (float(g[0]), float(g[1])))
+    mu = lens.magnification
+    if not (math.isfinite(mu) and abs(mu) < 1e4):
+        raise ConfigError("lens.local", loc, "a lens away from a critical curve (|μ| < 1e4)")
+    return lens
+
+
+def parse_observation_scene(doc: dict, path: Optional[str] = None) -> ObservationScene:
+    """An ObservationScene from a parsed TOML document (see the module doc)."""
+    base = Path(path).resolve().parent if path else Path.cwd()
+    _check_keys(doc, {"scene", "observations", "fit", "lens", "sps"}, "scene file")
+    sc = doc.get("scene", {})
+    _check_keys(sc, {"name", "z_source", "seed", "cosmology", "description"}, "scene")
+    z = sc.get("z_source")
+    if z is not None and not (_num(z) and 0 < z < 20):
+        raise ConfigError("scene.z_source", z, "a redshift in (0, 20)")
+    seed = sc.get("seed", 0)
+    if not (isinstance(seed, int) and 0 <= seed < 2**63):
+        raise ConfigError("scene.seed", seed, "an integer in [0, 2**63)")
+    cosmo = sc.get("cosmology", {"H0": 70.0, "Om0": 0.3})
+    obs = doc.get("observations")
+    if not isinstance(obs, list) or not obs:
+        raise ConfigError("observations", obs, "one [[observations]] table per band")
+    specs = tuple(_observation(t, base, k) for k, t in enumerate(obs))
+    names = [s.filter for s in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError("observations.filter", dup, "each filter once")
+    fit = doc.get("fit", {})
+    _check_keys(fit, {f.name for f in dataclasses.fields(FitOptions)}, "fit")
+    fit = dict(fit)
+    clumps = fit.get("clumps")
+    if isinstance(clumps, str) and clumps not in ("auto", "none"):
+        fit["clumps"] = str(base / clumps)
+    options = FitOptions(**fit).validate()
+    sps = doc.get("sps", {})
+    _check_keys(sps, {"metallicity", "sfh", "sfh_duration_myr", "dust_av"}, "sps")
+    return ObservationScene(sc.get("name", Path(path).stem if path else "fit"), specs, options,
+                            None if z is None else float(z), seed, _local_lens(doc.get("lens")),
+                            (float(cosmo.get("H0", 70.0)), float(cosmo.get("Om0", 0.3))),
+                            path, tuple(sorted(sps.items())))
+
+
+def load_observation_scene(path: str) -> ObservationScene:
+    with open(path, "rb") as fh:
+        doc = tomllib.load(fh)
+    return parse_observation_scene(doc, path)
+
+
+def is_observation_scene(path: str) -> bool:
+    """True when the TOML file at `path` has [[observations]] (False when it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            return "observations" in tomllib.load(fh)
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return False

@@ -1,0 +1,303 @@
+"""The fit of observed bands: a smooth host and clumps, jointly, in every band, on the data's pixels.
+
+    fit_observations(observations, frame, options, clump_starts=None) -> ObservedFit
+
+1. the model: `model.build_model` on each band's own `Grid` (frame.py), PSF per
+   band, no lens (the fit is in the image plane; a local lens maps the answers
+   to the source plane afterwards, answers.py). It is built from a template whose
+   clumps have the largest R_e the fit may reach (`clump_re_max_arcsec`) and whose
+   host has the smallest axis ratio, so stamps and exact strips cover every value
+   the bounded transforms allow: a clump that grows is never truncated.
+2. starts, never from any truth: the host from the light's moments (centre,
+   second moments → R_e, q, PA; total flux per band), n = 1; clumps from
+   `clump_starts` (φ positions, optional R_e) with fluxes from the residual of the
+   host-only fit in a 5 × 5-pixel box.
+3. stage "host": host + background by Levenberg–Marquardt (lm.py); stage "joint":
+   host, clumps (flux per band, centre, R_e [, q, PA]) and background together. With
+   a noise model, σ² = rms² + μ/t is refreshed from the model and the joint fit
+   rerun once.
+4. errors: the Fisher matrix in physical parameters at the optimum, from the
+   solver's last Jacobian (no further compile).
+
+Clump fluxes are linear (identity transform: they may go negative, so a band
+where a clump is not detected gives an unbiased flux and an honest upper limit);
+host flux and sizes are positive (log / log-bounded), n, q bounded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError
+from ..inference.likelihood import make_data, predicted_images
+from ..inference.optimize import fit_map
+from ..inference.params import Free, make_state, parametrize
+from ..inference.transforms import IDENTITY, LOG, Transform
+from ..inference.uncertainty import fisher_uncertainty
+from ..model import Accuracy, Band, build_model
+from ..source import Clumps, Sersic, Source
+from .lm import lm_fit
+
+HOST_N = (0.3, 8.0)          # host Sérsic index range
+HOST_Q_MIN = 0.08            # thinnest host (an arc seen edge-on is thin)
+CLUMP_Q_MIN = 0.2
+POSITION_BOX_PIXELS = 3.0   # clump centres stay within this many finest pixels of their start
+RESIDUAL_BOX = 2             # half-side (pixels) of the box whose residual starts a clump's flux
+
+
+@dataclasses.dataclass
+class ObservedFit:
+    """What `fit_observations` returns (numpy where it is a result, JAX objects to re-render)."""
+
+    model: object                 # SceneModel of the joint fit
+    data: object                  # inference ImageData (final variances)
+    param: object                 # Parametrization
+    state: object                 # FitState at the optimum
+    uncertainty: object           # Uncertainty (physical free parameters)
+    images: tuple                 # model μ per band (numpy)
+    success: bool
+    steps: list                   # [{stage, n_steps, chi2, success, seconds}]
+    timings_s: dict
+    n_clumps: int
+
+
+def bands_for(observations, frame) -> list:
+    """`model.Band` per observation on the frame's pixel scales (exposure unused: no noise drawn)."""
+    out = []
+    for ob, g in zip(observations, frame.grids):
+        psf = ob.psf
+        out.append(Band(ob.name, pixel_arcsec=g.pixel_arcsec, exptime_s=1.0,
+                        psf=None if psf is None else np.asarray(psf.array),
+                        psf_pixel_arcsec=None if psf is None else psf.pixel_arcsec,
+                        psf_effective=False if psf is None else psf.effective))
+    return out
+
+
+def host_start(observations, frame) -> Sersic:
+    """A host Sérsic from the light's moments in the summed S/N image (no truth involved)."""
+    g0 = frame.grids[0]
+    snr = np.zeros(g0.shape)
+    for k, ob in enumerate(observations):
+        if ob.data.shape == g0.shape and frame.grids[k] == g0:
+            snr += np.where(ob.mask, ob.data / np.sqrt(ob.variance), 0.0)
+    if not np.any(snr):
+        snr = np.where(observations[0].mask, observations[0].data, 0.0)
+    w = np.where(snr > 2.0, snr, 0.0)
+    if w.sum() <= 0:
+        w = np.clip(snr, 0, None) + 1e-12
+    y, x = np.mgrid[: g0.ny, : g0.nx]
+    px, py = g0.x0_arcsec + x * g0.pixel_arcsec, g0.y0_arcsec + y * g0.pixel_arcsec
+    W = w.sum()
+    cx, cy = (w * px).sum() / W, (w * py).sum() / W
+    ixx, iyy = (w * (px - cx) ** 2).sum() / W, (w * (py - cy) ** 2).sum() / W
+    ixy = (w * (px - cx) * (py - cy)).sum() / W
+    lam, vec = np.linalg.eigh(np.array([[ixx, ixy], [ixy, iyy]]))
+    lam = np.maximum(lam, (0.5 * g0.pixel_arcsec) ** 2)
+    re = float(np.clip(1.18 * np.sqrt(lam[1]), 1.5 * g0.pixel_arcsec,
+                       0.25 * min(g0.nx, g0.ny) * g0.pixel_arcsec))
+    q = float(np.clip(np.sqrt(lam[0] / lam[1]), 0.15, 1.0))
+    pa = float(np.arctan2(vec[1, 1], vec[0, 1]))
+    flux = [max(float(np.sum(ob.data[ob.mask])), 3.0 * float(np.sqrt(np.sum(ob.variance[ob.mask]))))
+            for ob in observations]
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    return Sersic(flux=f(flux), re_arcsec=f(re), n=f(1.0), q=f(q), pa_rad=f(pa),
+                  center_arcsec=f([cx, cy]))
+
+
+def _host_re_bounds(frame):
+    g0 = frame.grids[0]
+    return 0.5 * min(g.pixel_arcsec for g in frame.grids), 0.5 * np.hypot(*g0.shape) * g0.pixel_arcsec
+
+
+def _clumps(centers, flux, re, options) -> Optional[Clumps]:
+    n = len(centers)
+    if n == 0:
+        return None
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    return Clumps(center_arcsec=f(np.reshape(centers, (n, 2))), flux=f(flux), re_arcsec=f(re),
+                  n=f(np.full(n, options.clump_n)), q=f(np.ones(n)), pa_rad=f(np.zeros(n)))
+
+
+def make_model_factory(observations, frame, options):
+    """make_model(source) → SceneModel on the data's grids, stamps sized for the prior bounds."""
+    bands = bands_for(observations, frame)
+    acc = Accuracy(psf_oversampling=options.psf_oversampling, stamp_flux_fraction=0.999)
+    host_lo, host_hi = _host_re_bounds(frame)
+
+    def make_model(source: Source):
+        tmpl = source
+        if source.clumps is not None and source.clumps.count:
+            c = source.clumps
+            q_build = 1.0 if options.clump_shape == "round" else CLUMP_Q_MIN
+            tmpl = eqx.tree_at(lambda s: (s.clumps.re_arcsec, s.clumps.q), tmpl,
+                               (jnp.full_like(c.re_arcsec, options.clump_re_max_arcsec),
+                                jnp.full_like(c.q, q_build)))
+        if source.bulge is not None:
+            tmpl = eqx.tree_at(lambda s: (s.bulge.q, s.bulge.re_arcsec), tmpl,
+                               (jnp.asarray(HOST_Q_MIN, jnp.float64),
+                                jnp.asarray(host_hi, jnp.float64)))
+        return build_model(tmpl, bands, grids=frame.grids, accuracy=acc)
+
+    return make_model
+
+
+def free_parameters(source: Source, frame, options, *, clumps=True) -> dict:
+    """The `free` mapping: host (flux, R_e, n, q, PA, centre), clumps, background."""
+    lo, hi = _host_re_bounds(frame)
+    free = {}
+    if source.bulge is not None:
+        free.update({"bulge.flux": Free(True, LOG),
+                     "bulge.re_arcsec": Free(True, Transform("log_bounded", lo, hi)),
+                     "bulge.n": Free(True, Transform("bounded", *HOST_N)),
+                     "bulge.q": Free(True, Transform("bounded", HOST_Q_MIN, 1.0)),
+                     "bulge.pa_rad": True, "bulge.center_arcsec": True})
+    if clumps and source.clumps is not None and source.clumps.count:
+        # each centre within a box of ±POSITION_BOX_PIXELS finest pixels around its start: a
+        # clump whose light the host takes over cannot wander off the image (seen in a mock)
+        c = np.asarray(source.clumps.center_arcsec, float).ravel()
+        box = POSITION_BOX_PIXELS * min(g.pixel_arcsec for g in frame.grids)
+        free.update({"clumps.flux": Free(True, IDENTITY),
+                     "clumps.center_arcsec": Free(True, Transform(
+                         "bounded", tuple(float(v) for v in c - box),
+                         tuple(float(v) for v in c + box))),
+                     "clumps.re_arcsec": Free(True, Transform(
+                         "log_bounded", options.clump_re_min_arcsec, options.clump_re_max_arcsec))})
+        if options.clump_shape == "elliptical":
+            free.update({"clumps.q": Free(True, Transform("bounded", CLUMP_Q_MIN, 1.0)),
+                         "clumps.pa_rad": True})
+    if options.background:
+        free["background"] = True
+    return free
+
+
+def _chi2(model, data, state):
+    mu = predicted_images(model, state)
+    return [float(jnp.sum(m * (d - p) ** 2 / v)) for p, d, m, v in
+            zip(mu, data.images, data.masks, data.variances)], [np.asarray(p) for p in mu]
+
+
+def _data(model, observations, mu=None):
+    var = [ob.variance_for(None if mu is None else mu[k]) for k, ob in enumerate(observations)]
+    return make_data(model, [ob.data for ob in observations], var,
+                     [ob.mask.astype(float) for ob in observations])
+
+
+class _StageResult(eqx.Module):
+    state: object
+    x: jnp.ndarray
+    uncertainty: object
+
+
+def _uncertainty_from_jacobian(param, u, jac):
+    """Fisher covariance in physical x from the whitened-residual Jacobian in u (dx/du is
+    diagonal: every transform is elementwise)."""
+    from ..inference.uncertainty import Uncertainty, safe_inverse
+    x, dxdu = jax.jvp(param.physical_vector, (u,), (jnp.ones_like(u),))
+    jx = jac / jnp.where(dxdu != 0, dxdu, jnp.finfo(u.dtype).tiny)
+    return Uncertainty(param.labels, x, safe_inverse(jx.T @ jx))
+
+
+def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
+              max_steps=200, solver="lm"):
+    """One fit; appends a record to `steps`; returns (result, param, data, μ).
+
+    solver: "lm" (lm.py: one Jacobian per step, errors from the last one) or
+    "optimistix-lm" / "optimistix-bfgs" (then a Fisher matrix): compared in
+    benchmarks/bench_optimizers.py."""
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    data = _data(model, observations, mu)
+    state0 = make_state(source, len(observations), background_counts_per_s=background)
+    param = parametrize(state0, free)
+    if solver == "lm":
+        r = lm_fit(model, data, param, param.initial(), int(max_steps))
+        unc = _uncertainty_from_jacobian(param, r.u, r.jacobian)
+        res = _StageResult(param.state(r.u), unc.x, unc)
+        n_steps, ok = int(r.n_steps), bool(r.success)
+    else:
+        method = {"optimistix": "lm", "optimistix-lm": "lm", "optimistix-bfgs": "bfgs"}[solver]
+        m = fit_map(model, data, param, method=method, max_steps=max_steps, rtol=1e-6, atol=1e-6)
+        res = _StageResult(m.state, m.x, fisher_uncertainty(model, param, m.x, data))
+        n_steps, ok = int(m.n_steps), bool(m.success)
+    chi2, mu = _chi2(model, data, res.state)
+    steps.append(dict(stage=name, solver=solver, n_steps=n_steps, success=ok,
+                      chi2=float(sum(chi2)), seconds=round(time.perf_counter() - t0, 3),
+                      cpu_seconds=round(time.process_time() - c0, 3)))
+    return res, param, data, mu
+
+
+def _clump_fluxes(observations, frame, centers, mu):
+    """Start fluxes [N, B]: the residual (data − host model) summed in a box around each clump."""
+    out = np.zeros((len(centers), len(observations)))
+    for k, ob in enumerate(observations):
+        r = np.where(ob.mask, ob.data - mu[k], 0.0)
+        xy = np.rint(frame.pixel_of(np.asarray(centers), k)).astype(int)
+        for i, (x, y) in enumerate(xy):
+            b = RESIDUAL_BOX
+            box = r[max(y - b, 0): y + b + 1, max(x - b, 0): x + b + 1]
+            noise = np.sqrt(np.sum(ob.variance[max(y - b, 0): y + b + 1, max(x - b, 0): x + b + 1]))
+            out[i, k] = max(float(box.sum()), float(noise)) if box.size else float(noise)
+    return out
+
+
+def fit_observations(observations, frame, options, clump_starts=None, *, solver="lm") -> ObservedFit:
+    """Fit host + clumps to the observations (see the module doc). clump_starts: dict with
+    "phi" [N, 2] (fit-frame arcsec) and optional "re_arcsec" [N], or None for none."""
+    t_start, c_start = time.perf_counter(), time.process_time()
+    timings, steps = {}, []
+    make_model = make_model_factory(observations, frame, options)
+    host = host_start(observations, frame) if options.host == "sersic" else None
+    nb = len(observations)
+    bg = np.zeros(nb)
+    mu = None
+    if host is not None:
+        t0 = time.perf_counter()
+        src = Source(bulge=host)
+        model = make_model(src)
+        timings["build_host_model"] = time.perf_counter() - t0
+        res, param, data, mu = run_stage("host", model, observations, src,
+                                         free_parameters(src, frame, options), steps,
+                                         max_steps=options.max_steps, solver=solver)
+        host = res.state.source.bulge
+        bg = np.asarray(res.state.background_counts_per_s)
+    n = 0 if clump_starts is None else len(clump_starts["phi"])
+    if host is None and n == 0:
+        raise ConfigError("fit", "host = \"none\" and no clumps", "something to fit")
+    if mu is None:
+        mu = [np.zeros(ob.data.shape) for ob in observations]
+    if n:
+        phi = np.asarray(clump_starts["phi"], float).reshape(n, 2)
+        re0 = np.asarray(clump_starts.get("re_arcsec", np.full(n, np.nan)), float)
+        pix = min(g.pixel_arcsec for g in frame.grids)
+        re0 = np.where(np.isfinite(re0), re0, pix)
+        re0 = np.clip(re0, options.clump_re_min_arcsec * 1.01, options.clump_re_max_arcsec * 0.99)
+        flux0 = _clump_fluxes(observations, frame, phi, mu)
+        src = Source(bulge=host, clumps=_clumps(phi, flux0, re0, options))
+    else:
+        src = Source(bulge=host)
+    t0 = time.perf_counter()
+    model = make_model(src)
+    timings["build_model"] = time.perf_counter() - t0
+    free = free_parameters(src, frame, options)
+    noise_model = any(ob.noise_exptime_s is not None for ob in observations)
+    res, param, data, mu_new = run_stage("joint", model, observations, src, free, steps,
+                                         mu=mu if noise_model else None, background=bg,
+                                         max_steps=options.max_steps, solver=solver)
+    if noise_model:   # σ² from the fitted model, then once more
+        res, param, data, mu_new = run_stage(
+            "joint (variance from model)", model, observations, res.state.source, free, steps,
+            mu=mu_new, background=res.state.background_counts_per_s, max_steps=options.max_steps,
+            solver=solver)
+    unc = res.uncertainty
+    timings["total"] = time.perf_counter() - t_start
+    timings["cpu_total"] = time.process_time() - c_start
+    return ObservedFit(model, data, param, res.state, unc, tuple(mu_new),
+                       all(s["success"] for s in steps), steps,
+                       {k: round(v, 3) for k, v in timings.items()}, n)

@@ -1,0 +1,84 @@
+"""Levenberg–Marquardt with one forward-mode Jacobian per step: the solver of observation fits.
+
+Why not optimistix's LevenbergMarquardt (used elsewhere in inference/): its compiled
+program holds the scene model several times (residual, linearisation, trial step), and
+for a three-band model with exact pixel integrals XLA spends minutes compiling it; the
+Fisher matrix then needs one more compile. Here each step evaluates residuals and
+Jacobian together (`jax.jacfwd(..., has_aux=True)`: one trace of the model) at a trial
+point, accepts it if χ² dropped (λ ← λ/3) or keeps the previous point (λ ← 4λ), and
+proposes the next trial from (JᵀJ + λ diag JᵀJ) δ = −Jᵀr. The Jacobian at the optimum is
+returned, so errors need no further compile. benchmarks/bench_optimizers.py measures both.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..inference.likelihood import make_residuals
+
+LAMBDA0 = 1e-3
+LAMBDA_MAX = 1e12
+DECREMENT_TOL = 1e-2      # χ² a Gauss–Newton step may still gain at a converged point
+
+
+class LMResult(eqx.Module):
+    u: jnp.ndarray
+    chi2: jnp.ndarray
+    jacobian: jnp.ndarray        # d(whitened residuals)/du at u
+    n_steps: jnp.ndarray
+    success: jnp.ndarray
+
+
+def _propose(u, r, J, lam):
+    g = J.T @ r
+    H = J.T @ J
+    d = jnp.diag(H)
+    d = jnp.where(d > 0, d, 1.0)
+    delta = jnp.linalg.solve(H + lam * jnp.diag(d), -g)
+    return u + jnp.where(jnp.isfinite(delta), delta, 0.0), delta
+
+
+@eqx.filter_jit
+def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-7):
+    """Minimise |whitened residuals|² over u from u0 (see the module doc)."""
+    resid = make_residuals(scene_model, data, param)
+
+    def r_and_j(u):
+        def f(v):
+            r = resid(v)
+            return r, r
+        J, r = jax.jacfwd(f, has_aux=True)(u)
+        return r, J
+
+    n = u0.size
+    r0 = jnp.zeros(sum(int(m.size) for m in data.masks), u0.dtype)
+    init = dict(u=u0, r=r0, J=jnp.zeros((r0.size, n), u0.dtype), chi2=jnp.asarray(jnp.inf, u0.dtype),
+                trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype), step=0, done=False, ok=False)
+
+    def cond(s):
+        return (s["step"] < max_steps) & ~s["done"]
+
+    def body(s):
+        r_t, J_t = r_and_j(s["trial"])
+        c_t = jnp.sum(r_t**2)
+        accept = jnp.isfinite(c_t) & (c_t <= s["chi2"])
+        # converged: a step close to Gauss–Newton (not one shrunk by a large λ after
+        # rejections, which gains little anywhere) that gained almost nothing
+        small = accept & (s["chi2"] - c_t <= rtol * c_t) & (s["lam"] <= 1.0)
+        keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
+        u, r, J, chi2 = (keep(s["trial"], s["u"]), keep(r_t, s["r"]), keep(J_t, s["J"]),
+                         keep(c_t, s["chi2"]))
+        lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
+        trial, _ = _propose(u, r, J, lam)
+        stuck = lam > LAMBDA_MAX
+        # stuck at the largest damping: converged only if a full Gauss–Newton step would
+        # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
+        _, gn = _propose(u, r, J, 0.0)
+        at_min = -2.0 * jnp.dot(J.T @ r, gn) < DECREMENT_TOL
+        return dict(u=u, r=r, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
+                    done=small | stuck, ok=small | (stuck & at_min))
+
+    s = jax.lax.while_loop(cond, body, init)
+    return LMResult(s["u"], s["chi2"], s["J"], s["step"], s["ok"])

@@ -1,0 +1,170 @@
+"""Files of a fit of observations (SCENE.md): fit.ecsv, residuals_<FILTER>.fits, clumps.reg,
+summary.json and fit.png — each written atomically."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..io import atomic_write, write_catalog, write_json
+
+
+def _wcs_header(ob, frame_band):
+    from astropy.io import fits
+    h = fits.Header()
+    if frame_band.wcs is not None:
+        h.update(frame_band.wcs.to_header())
+    h["PIXSCALE"] = (frame_band.pixel_arcsec, "arcsec/pixel")
+    h["FILTER"] = ob.name
+    h["BUNIT"] = ob.units
+    h["ZP_AB"] = (ob.zeropoint_ab, "AB mag of one data unit per pixel")
+    return h
+
+
+def write_residuals(out: Path, observations, fit) -> list:
+    """residuals_<FILTER>.fits: DATA, MODEL, RESIDUAL, CHI on the data's pixels and WCS."""
+    from astropy.io import fits
+    paths = []
+    for k, ob in enumerate(observations):
+        mu = np.asarray(fit.images[k], float)
+        var = np.asarray(fit.data.variances[k], float)
+        d = np.where(ob.mask, ob.data, np.nan)
+        resid = d - mu
+        chi = np.where(ob.mask, resid / np.sqrt(var), np.nan)
+        hdr = _wcs_header(ob, ob.frame)
+        hdus = [fits.PrimaryHDU(header=hdr)]
+        for ext, arr in (("DATA", d), ("MODEL", mu), ("RESIDUAL", resid), ("CHI", chi)):
+            h = fits.ImageHDU(arr.astype(np.float32), header=hdr, name=ext)
+            if ext == "CHI":
+                h.header["BUNIT"] = "sigma"
+            hdus.append(h)
+        path = out / f"residuals_{ob.name}.fits"
+        with atomic_write(path) as tmp:
+            fits.HDUList(hdus).writeto(tmp, overwrite=True)
+        paths.append(path)
+    return paths
+
+
+def write_regions(path: Path, table, frame) -> Path:
+    """DS9 regions of the clumps: circles of radius max(R_e, 1.5 pixels), labelled by id."""
+    from regions import CirclePixelRegion, CircleSkyRegion, PixCoord, Regions
+    p0 = frame.grids[0].pixel_arcsec
+    regs = []
+    for row in table:
+        r_pix = max(float(row["re_obs_arcsec"] if "re_obs_arcsec" in table.colnames
+                          else row["re_arcsec"]) / p0, 1.5)
+        meta = {"text": str(int(row["id"]))}
+        if "ra_deg" in table.colnames:
+            import astropy.units as u
+            from astropy.coordinates import SkyCoord
+            regs.append(CircleSkyRegion(SkyCoord(row["ra_deg"] * u.deg, row["dec_deg"] * u.deg),
+                                        r_pix * p0 * u.arcsec, meta=meta))
+        else:
+            regs.append(CirclePixelRegion(PixCoord(float(row["x_pix"]), float(row["y_pix"])),
+                                          r_pix, meta=meta))
+    with atomic_write(path, "w") as fh:
+        fh.write(Regions(regs).serialize(format="ds9") if regs else
+                 "# Region file format: DS9\n# no clumps\nimage\n")
+    return path
+
+
+def _stretch(img, lo, hi):
+    return np.arcsinh(np.clip((img - lo) / max(hi - lo, 1e-30), -0.05, None) * 10) / np.arcsinh(10)
+
+
+def write_png(path: Path, observations, fit, table, frame) -> Path:
+    """Data, model and residual (χ) per band, clumps marked."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    nb = len(observations)
+    fig, axes = plt.subplots(nb, 3, figsize=(10.5, 3.4 * nb), squeeze=False)
+    for k, ob in enumerate(observations):
+        d = np.where(ob.mask, ob.data, np.nan)
+        mu = np.asarray(fit.images[k])
+        chi = np.where(ob.mask, (ob.data - mu) / np.sqrt(np.asarray(fit.data.variances[k])), np.nan)
+        lo, hi = np.nanpercentile(d, [5, 99.7])
+        for j, (img, title, kw) in enumerate((
+                (_stretch(d, lo, hi), f"{ob.name} data", dict(cmap="gray_r", vmin=0, vmax=1)),
+                (_stretch(mu, lo, hi), "model", dict(cmap="gray_r", vmin=0, vmax=1)),
+                (chi, "residual (χ)", dict(cmap="RdBu_r", vmin=-5, vmax=5)))):
+            ax = axes[k, j]
+            im = ax.imshow(img, origin="lower", interpolation="nearest", **kw)
+            ax.set_title(title)
+            if j == 2:
+                fig.colorbar(im, ax=ax, fraction=0.046)
+            if len(table):
+                xy = frame.pixel_of(frame.phi_of_pixel(
+                    np.stack([np.asarray(table["x_pix"]), np.asarray(table["y_pix"])], -1), 0), k)
+                ax.scatter(xy[:, 0], xy[:, 1], s=60, facecolors="none", edgecolors="tab:orange",
+                           linewidths=1.0)
+                if j == 0:
+                    for i, (x, y) in enumerate(xy):
+                        ax.annotate(str(i), (x, y), xytext=(4, 4), textcoords="offset points",
+                                    color="tab:orange", fontsize=7)
+            ax.set_xlabel("x (pixel)")
+            ax.set_ylabel("y (pixel)")
+    fig.tight_layout()
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    return path
+
+
+def chi2_per_dof(observations, fit) -> dict:
+    """χ²/dof per band (dof: the band's used pixels less its share of the free parameters)."""
+    n_free = len(fit.param.labels)
+    n_pix = [int(ob.mask.sum()) for ob in observations]
+    total = sum(n_pix)
+    out = {}
+    for k, ob in enumerate(observations):
+        mu = np.asarray(fit.images[k])
+        var = np.asarray(fit.data.variances[k])
+        chi2 = float(np.sum(np.where(ob.mask, (ob.data - mu) ** 2 / var, 0.0)))
+        dof = max(n_pix[k] - n_free * n_pix[k] / total, 1.0)
+        out[ob.name] = chi2 / dof
+    return out
+
+
+def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None) -> list:
+    """Every output file of the fit into out_dir; returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    table.meta.update({"scene": scene.name, "success": bool(fit.success),
+                       "units": {ob.name: ob.units for ob in observations},
+                       "zeropoint_ab": {ob.name: ob.zeropoint_ab for ob in observations}})
+    write_catalog(out / "fit.ecsv", table)
+    files.append(out / "fit.ecsv")
+    files += write_residuals(out, observations, fit)
+    files.append(write_regions(out / "clumps.reg", table, frame))
+    summary = {
+        "scene": scene.name, "path": scene.path, "success": bool(fit.success),
+        "n_clumps": int(fit.n_clumps), "chi2_per_dof": chi2_per_dof(observations, fit),
+        "free_parameters": list(fit.param.labels), "n_free": len(fit.param.labels),
+        "timings_s": fit.timings_s, "steps": fit.steps, "host": host,
+        "background": {ob.name: float(fit.state.background_counts_per_s[k])
+                       for k, ob in enumerate(observations)},
+        "bands": {ob.name: {"file": ob.path, "units": ob.units, "units_conversion": ob.units_how,
+                            "zeropoint_ab": ob.zeropoint_ab, "pixel_arcsec": g.pixel_arcsec,
+                            "n_pixels_used": int(ob.mask.sum()),
+                            "grid_origin_arcsec": [g.x0_arcsec, g.y0_arcsec],
+                            "psf": None if ob.psf is None else ob.psf.source,
+                            "noise_model": ob.noise_exptime_s is not None}
+                  for ob, g in zip(observations, frame.grids)},
+        "frame": {"wcs": frame.reference.wcs is not None,
+                  "center_radec_deg": frame.center_radec(),
+                  "theta": "DESIGN.md θ (West, North) from the WCS" if frame.reference.wcs
+                  is not None else "pixel axes (no WCS): x taken as West, y as North"},
+        "fit_options": {k: getattr(scene.fit, k) for k in scene.fit.__dataclass_fields__},
+        "lens": None if scene.lens is None else {"convergence": scene.lens.convergence,
+                                                 "shear": list(scene.lens.shear),
+                                                 "magnification": scene.lens.magnification},
+        "z_source": scene.z_source,
+    }
+    summary.update(extra or {})
+    write_json(out / "summary.json", summary)
+    files.append(out / "summary.json")
+    files.append(write_png(out / "fit.png", observations, fit, table, frame))
+    return files

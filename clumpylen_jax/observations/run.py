@@ -1,0 +1,127 @@
+"""`fit_observation_scene`: the whole path of `clumpylen fit` for a scene with [[observations]].
+
+read and check every band (before any compilation) → fit frame → clump starts
+("auto": inference.auto; a catalogue; "none") → joint fit → answers → files.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from .answers import clump_rows, host_summary
+from .config import ObservationScene, load_observation_scene
+from .fit import fit_observations
+from .frame import fit_frame
+from .read import read_observation
+
+
+def read_scene_data(scene: ObservationScene):
+    """(observations, frame): every band read and checked, and placed in one fit frame."""
+    obs = [read_observation(s) for s in scene.observations]
+    frame = fit_frame([o.frame for o in obs], [o.name for o in obs], [o.path for o in obs])
+    if scene.z_source is not None and len(obs) >= 2:   # masses need every filter's throughput
+        from ..filters import load_filter
+        for o in obs:
+            try:
+                load_filter(o.name)
+            except ConfigError as exc:
+                raise ConfigError(f"observations[{o.name}].filter", o.name,
+                                  f"a known filter for masses at z_source ({exc.expected})") from None
+    return obs, frame
+
+
+def catalogue_starts(path: str, frame) -> dict:
+    """Clump starting guesses from a catalogue (ECSV/CSV/FITS table): positions as x_pix/y_pix
+    (first observation, 0-based), ra_deg/dec_deg or theta1_arcsec/theta2_arcsec; optional
+    re_arcsec. Returns {"phi": [N, 2], "re_arcsec": [N]}."""
+    from astropy.table import Table
+    if not Path(path).is_file():
+        raise ConfigError("fit.clumps", path, '"auto", "none" or an existing catalogue file')
+    try:
+        t = Table.read(path, format="ascii.csv" if path.endswith(".csv") else None)
+    except Exception as exc:
+        raise ConfigError("fit.clumps", path, f"a readable table (ECSV, CSV, FITS): {exc}") from None
+    cols = set(t.colnames)
+    if {"x_pix", "y_pix"} <= cols:
+        phi = frame.phi_of_pixel(np.stack([np.asarray(t["x_pix"], float),
+                                           np.asarray(t["y_pix"], float)], -1), 0)
+    elif {"ra_deg", "dec_deg"} <= cols:
+        phi = frame.phi_of_radec(np.asarray(t["ra_deg"], float), np.asarray(t["dec_deg"], float))
+    elif {"theta1_arcsec", "theta2_arcsec"} <= cols:
+        phi = frame.phi_of_theta(np.stack([np.asarray(t["theta1_arcsec"], float),
+                                           np.asarray(t["theta2_arcsec"], float)], -1))
+    else:
+        raise ConfigError("fit.clumps", path, "columns x_pix, y_pix or ra_deg, dec_deg or "
+                          f"theta1_arcsec, theta2_arcsec (it has {sorted(cols)})")
+    if not np.all(np.isfinite(phi)):
+        raise ConfigError("fit.clumps", path, "finite clump positions")
+    re = np.asarray(t["re_arcsec"], float) if "re_arcsec" in cols else np.full(len(t), np.nan)
+    return {"phi": np.asarray(phi, float).reshape(-1, 2), "re_arcsec": re}
+
+
+def _auto_available():
+    try:
+        from ..inference import auto  # noqa: F401
+        return hasattr(auto, "fit_without_truth")
+    except ImportError:
+        return False
+
+
+def auto_starts(observations, frame, scene) -> dict:
+    """Clumps found and counted in the data by `inference.auto.fit_without_truth` (its seeding,
+    criterion and multi-start), on this module's model of the data's pixels; its clumps then
+    start the joint fit here, which gives the reported answers."""
+    import dataclasses
+
+    from ..inference.auto import AutoOptions, fit_without_truth
+    from .fit import make_model_factory
+    opts = scene.fit
+    if opts.max_clumps == 0:
+        return None
+    wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
+                  clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps)
+    names = {f.name for f in dataclasses.fields(AutoOptions)}
+    auto = fit_without_truth(make_model_factory(observations, frame, opts),
+                             [o.data for o in observations], [o.variance for o in observations],
+                             [o.mask for o in observations],
+                             zeropoints_ab={o.name: o.zeropoint_ab for o in observations},
+                             options=AutoOptions(**{k: v for k, v in wanted.items() if k in names}))
+    cl = auto.state.source.clumps
+    if cl is None or cl.count == 0:
+        return None
+    return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float)}
+
+
+def fit_observation_scene(scene, out_dir=None, *, progress=None):
+    """Fit a scene with [[observations]] (a path or an ObservationScene); write the files to
+    out_dir (None: nothing written). Returns (fit, table, host, files)."""
+    if not isinstance(scene, ObservationScene):
+        scene = load_observation_scene(str(scene))
+    t0 = time.perf_counter()
+    obs, frame = read_scene_data(scene)
+    opts = scene.fit
+    starts = None
+    if opts.clumps == "auto":
+        if not _auto_available():
+            raise ConfigError("fit.clumps", "auto", "a catalogue path of starting guesses or "
+                              "\"none\": finding clumps without a catalogue (inference.auto) is "
+                              "not available in this build yet")
+        starts = auto_starts(obs, frame, scene)
+    elif opts.clumps != "none":
+        starts = catalogue_starts(opts.clumps, frame)
+    read_s = time.perf_counter() - t0
+    if progress:
+        progress(f"read {len(obs)} bands in {read_s:.1f} s; fitting")
+    fit = fit_observations(obs, frame, opts, starts)
+    fit.timings_s["read"] = round(read_s, 3)
+    table = clump_rows(fit, obs, frame, scene)
+    host = host_summary(fit, obs, frame)
+    files = []
+    if out_dir is not None:
+        from .outputs import write_all
+        files = write_all(out_dir, scene, obs, frame, fit, table, host)
+    return fit, table, host, files

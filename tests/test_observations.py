@@ -1,0 +1,486 @@
+"""Observed images in (issue 17): units through the zero point, every bad input, a mock fit back.
+
+Units are checked against independent computations (astropy units, the AB definition);
+bad inputs go through the CLI (exit 2, one line naming the file or setting, before any
+compilation); the mock fit (MJy/sr, rotated WCS, two pixel scales) checks pulls.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+import clumpylen_jax  # noqa: F401  (float64)
+from clumpylen_jax.cli import main
+from clumpylen_jax.errors import ConfigError
+from clumpylen_jax.observations import ObservationSpec, read_observation, resolve_units
+from clumpylen_jax.observations.config import parse_observation_scene
+from clumpylen_jax.observations.frame import fit_frame
+from clumpylen_jax.observations.units import zeropoint_mjy_sr, zeropoint_photflam
+
+RA0, DEC0 = 64.038142, -24.067472
+
+
+def celestial_header(shape, pixel_arcsec, rot_deg=0.0, center=(RA0, DEC0)):
+    """A TAN WCS header, north-up east-left rotated by rot_deg, centred on the image."""
+    ny, nx = shape
+    c, s = math.cos(math.radians(rot_deg)), math.sin(math.radians(rot_deg))
+    p = pixel_arcsec / 3600.0
+    h = fits.Header()
+    h.update(CTYPE1="RA---TAN", CTYPE2="DEC--TAN", CRVAL1=center[0], CRVAL2=center[1],
+             CRPIX1=(nx + 1) / 2.0, CRPIX2=(ny + 1) / 2.0,
+             CD1_1=-p * c, CD1_2=p * s, CD2_1=p * s, CD2_2=p * c)
+    return h
+
+
+def write_cutout(path, sci, err=None, *, header=None, bunit="MJy/sr", extra=None, wht=None):
+    hdr = fits.Header() if header is None else header.copy()
+    if bunit is not None:
+        hdr["BUNIT"] = bunit
+    for k, v in (extra or {}).items():
+        hdr[k] = v
+    hdus = [fits.PrimaryHDU(), fits.ImageHDU(np.asarray(sci, np.float32), hdr, name="SCI")]
+    if err is not None:
+        hdus.append(fits.ImageHDU(np.asarray(err, np.float32), hdr, name="ERR"))
+    if wht is not None:
+        hdus.append(fits.ImageHDU(np.asarray(wht, np.float32), hdr, name="WHT"))
+    fits.HDUList(hdus).writeto(path, overwrite=True)
+    return str(path)
+
+
+def gaussian_psf_file(path, sigma_pix=1.2, size=15, pixel_arcsec=0.03, scale=1.0):
+    y, x = np.mgrid[:size, :size] - (size - 1) / 2
+    psf = np.exp(-(x**2 + y**2) / (2 * sigma_pix**2)) * scale
+    h = fits.Header()
+    h["PIXSCALE"] = pixel_arcsec
+    fits.PrimaryHDU(psf, h).writeto(path, overwrite=True)
+    return str(path)
+
+
+# ----------------------------------------------------------------------------- units
+
+
+def test_mjy_sr_with_pixar_gives_the_ab_magnitude_of_a_known_source(tmp_path):
+    """A 25.0 AB source spread over pixels in MJy/sr: Σ data × ZP(PIXAR_SR) gives 25.0 back."""
+    pixar = 2.2588e-14
+    f_jy = 3631.0 * 10 ** (-0.4 * 25.0)                 # AB definition
+    y, x = np.mgrid[:21, :21] - 10
+    blob = np.exp(-(x**2 + y**2) / 8.0)
+    sci = blob / blob.sum() * f_jy / (1e6 * pixar)      # MJy/sr per pixel
+    path = write_cutout(tmp_path / "i2d.fits", sci, np.full(sci.shape, 1e-3),
+                        extra={"PIXAR_SR": pixar, "PIXSCALE": 0.031})
+    ob = read_observation(ObservationSpec(filter="F200W", image=path))
+    assert ob.units_how == "MJy/sr x PIXAR_SR"
+    assert ob.zeropoint_ab - 2.5 * np.log10(ob.data.sum()) == pytest.approx(25.0, abs=1e-5)
+    # with only a pixel scale, Ω = (pixel / 206264.8″)²
+    import astropy.units as u
+    omega = ((0.031 * u.arcsec) ** 2).to_value(u.sr)
+    assert zeropoint_mjy_sr(omega) == pytest.approx(
+        -2.5 * np.log10((1 * u.MJy / u.sr * omega * u.sr / (3631 * u.Jy)).decompose().value),
+        abs=1e-9)
+
+
+def test_photflam_zero_point_matches_astropy_units():
+    """ZP from PHOTFLAM/PHOTPLAM equals the AB magnitude of 1 e-/s computed with astropy units."""
+    import astropy.units as u
+    photflam, photplam = 7.0332e-20, 8057.0          # ACS/WFC F814W-like
+    flam = photflam * u.erg / u.s / u.cm**2 / u.AA
+    fnu = flam.to(u.Jy, equivalencies=u.spectral_density(photplam * u.AA))
+    expected = -2.5 * np.log10((fnu / (3631 * u.Jy)).decompose().value)
+    assert zeropoint_photflam(photflam, photplam) == pytest.approx(expected, abs=2e-3)
+    assert zeropoint_photflam(photflam, photplam) == pytest.approx(25.94, abs=0.01)
+
+
+def test_counts_are_divided_by_exptime_and_explicit_zero_point_wins():
+    r = resolve_units({"BUNIT": "ELECTRONS", "EXPTIME": 500.0, "PHOTFLAM": 1e-19, "PHOTPLAM": 8000.0},
+                      where="x")
+    assert r["scale"] == pytest.approx(1 / 500.0) and r["counts_per_unit"] == 1.0
+    r = resolve_units({"BUNIT": "e-/s"}, zeropoint_ab=25.5, where="x")
+    assert r["zeropoint_ab"] == 25.5
+    assert resolve_units({"BUNIT": "nJy"}, where="x")["zeropoint_ab"] == pytest.approx(31.4, abs=1e-3)
+
+
+def test_weight_map_is_inverse_variance_and_zero_weight_is_masked(tmp_path):
+    sci = np.random.default_rng(0).normal(size=(20, 20))
+    wht = np.full(sci.shape, 4.0)
+    wht[3, 4] = 0.0
+    path = write_cutout(tmp_path / "drz.fits", sci, header=None, bunit="ELECTRONS/S",
+                        extra={"PHOTFLAM": 1e-19, "PHOTPLAM": 8000.0, "PIXSCALE": 0.05}, wht=wht)
+    ob = read_observation(ObservationSpec(filter="F814W", image=path))
+    assert ob.variance[0, 0] == pytest.approx(0.25)
+    assert not ob.mask[3, 4] and ob.mask.sum() == 399
+
+
+def test_noise_model_without_map(tmp_path):
+    sci = np.abs(np.random.default_rng(1).normal(size=(20, 20)))
+    path = write_cutout(tmp_path / "hst.fits", sci, bunit=None, extra={"PIXSCALE": 0.05})
+    spec = ObservationSpec(filter="F814W", image=path, units="e-/s", zeropoint_ab=25.94,
+                           noise={"background_rms": 0.0075, "exptime_s": 1980.0})
+    ob = read_observation(spec)
+    mu = np.full(sci.shape, 3.0)
+    assert ob.variance_for(mu)[0, 0] == pytest.approx(0.0075**2 + 3.0 / 1980.0)
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def test_two_pixel_scales_and_a_rotated_wcs_share_one_frame():
+    """NIRCam SW 0.031″ and LW 0.063″ cutouts of one field, rotated 30°: the LW grid lands
+    on the SW frame with its own scale, and θ follows the sky (West, North)."""
+    from clumpylen_jax.observations.frame import BandFrame, celestial_wcs
+    sw = BandFrame((64, 64), 0.031, celestial_wcs(celestial_header((64, 64), 0.031, 30.0)))
+    lw = BandFrame((32, 32), 0.062, celestial_wcs(celestial_header((32, 32), 0.062, 30.0)))
+    fr = fit_frame([sw, lw], ["F150W", "F444W"])
+    g = fr.grids[1]
+    assert g.pixel_arcsec == pytest.approx(0.062, rel=1e-6)
+    # both centred on the same sky point: the grids' centres coincide
+    assert g.x0_arcsec + 15.5 * g.pixel_arcsec == pytest.approx(0.0, abs=1e-6)
+    # a point 1″ along the SW pixel x axis (rotated 30° from West towards North)
+    th = fr.theta(np.array([1.0, 0.0]))
+    assert th == pytest.approx([math.cos(math.radians(30)), math.sin(math.radians(30))], abs=1e-5)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _toml(v):
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + " }"
+    return f"{v!r}".replace("'", '"')
+
+
+def _scene(tmp_path, obs_tables, fit="clumps = \"none\"\n"):
+    text = "[scene]\nname = \"t\"\n"
+    for t in obs_tables:
+        text += "\n[[observations]]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in t.items())
+    text += "\n[fit]\n" + fit
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return str(p)
+
+
+def _good(tmp_path, name="good.fits", **kw):
+    sci = np.random.default_rng(2).normal(size=(24, 24))
+    return write_cutout(tmp_path / name, sci, np.ones_like(sci),
+                        extra={"PIXSCALE": 0.031, **kw.pop("extra", {})}, **kw)
+
+
+def _fails(argv, capsys, *needles):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    for n in needles:
+        assert n in err, err
+    return err
+
+
+@pytest.mark.parametrize("case", ["no_sci", "unknown_units", "no_units", "nan_sigma", "neg_sigma",
+                                  "psf_zero", "all_nan", "zero_variance", "no_overlap",
+                                  "rotated_band", "no_uncertainty", "unknown_key", "dup_filter"])
+def test_bad_observation_input_is_one_line_and_exit_2(tmp_path, capsys, case):
+    good = _good(tmp_path)
+    obs = {"filter": "F150W", "image": good}
+    tables, needles = [obs], []
+    sci = np.random.default_rng(3).normal(size=(24, 24))
+    if case == "no_sci":
+        p = tmp_path / "table.fits"
+        fits.HDUList([fits.PrimaryHDU(), fits.BinTableHDU.from_columns(
+            [fits.Column("a", "E", array=np.ones(3))])]).writeto(p)
+        obs["image"], needles = str(p), ["observations[F150W].image", "SCI"]
+    elif case == "unknown_units":
+        obs["image"] = write_cutout(tmp_path / "u.fits", sci, np.ones_like(sci), bunit="furlongs",
+                                    extra={"PIXSCALE": 0.03})
+        needles = ["units", "zeropoint_ab", "u.fits"]
+    elif case == "no_units":
+        obs["image"] = write_cutout(tmp_path / "n.fits", sci, np.ones_like(sci), bunit=None,
+                                    extra={"PIXSCALE": 0.03})
+        needles = ["BUNIT", "n.fits"]
+    elif case in ("nan_sigma", "neg_sigma"):
+        err = np.ones_like(sci)
+        err[5, 5] = np.nan if case == "nan_sigma" else -1.0
+        obs["image"] = write_cutout(tmp_path / "e.fits", sci, err, extra={"PIXSCALE": 0.03})
+        needles = ["observations[F150W].error", "e.fits"]
+    elif case == "psf_zero":
+        obs["psf"] = gaussian_psf_file(tmp_path / "psf.fits", scale=0.0)
+        needles = ["observations[F150W].psf", "psf.fits"]
+    elif case == "all_nan":
+        obs["image"] = write_cutout(tmp_path / "nan.fits", np.full_like(sci, np.nan),
+                                    np.ones_like(sci), extra={"PIXSCALE": 0.03})
+        needles = ["nan.fits", "usable pixels"]
+    elif case == "zero_variance":
+        obs["image"] = write_cutout(tmp_path / "z.fits", sci, np.zeros_like(sci),
+                                    extra={"PIXSCALE": 0.03})
+        needles = ["z.fits", "usable pixels"]
+    elif case in ("no_overlap", "rotated_band"):
+        far = (RA0 + 0.01, DEC0) if case == "no_overlap" else (RA0, DEC0)
+        rot = 20.0 if case == "rotated_band" else 0.0
+        obs["image"] = write_cutout(tmp_path / "a.fits", sci, np.ones_like(sci),
+                                    header=celestial_header(sci.shape, 0.03))
+        tables.append({"filter": "F200W", "image": write_cutout(
+            tmp_path / "b.fits", sci, np.ones_like(sci),
+            header=celestial_header(sci.shape, 0.03, rot, far))})
+        needles = ["observations[F200W]", "b.fits"]
+    elif case == "no_uncertainty":
+        obs["image"] = write_cutout(tmp_path / "s.fits", sci, None, extra={"PIXSCALE": 0.03})
+        needles = ["observations[F150W].error", "s.fits"]
+    elif case == "unknown_key":
+        obs["eror"] = "ERR"
+        needles = ["observations[F150W].eror", "error"]
+    elif case == "dup_filter":
+        tables.append(dict(obs))
+        needles = ["observations.filter", "F150W"]
+    scene = _scene(tmp_path, tables)
+    _fails(["fit", scene, "--out", str(tmp_path / "out")], capsys, *needles)
+    assert not (tmp_path / "out").exists()
+
+
+def test_repeated_or_unknown_image_band_is_an_error(tmp_path, capsys):
+    good = _good(tmp_path)
+    scene = _scene(tmp_path, [{"filter": "F150W", "image": good}])
+    _fails(["fit", scene, "--image", f"F150W={good}", "--image", f"f150w={good}", "--out",
+            str(tmp_path / "o")], capsys, "--image", "twice")
+    _fails(["fit", scene, "--image", f"F444W={good}", "--out", str(tmp_path / "o")], capsys,
+           "--image", "F444W")
+    # the simulation path names --image too
+    _fails(["fit", "single-sersic", "--image", f"F444W={good}", "--out", str(tmp_path / "o")],
+           capsys, "--image", "F444W")
+
+
+def test_fit_auto_without_the_auto_module_says_so(tmp_path, capsys):
+    from clumpylen_jax.observations.run import _auto_available
+    if _auto_available():
+        pytest.skip("inference.auto is available: 'auto' is wired")
+    scene = _scene(tmp_path, [{"filter": "F150W", "image": _good(tmp_path)}],
+                   fit='clumps = "auto"\n')
+    _fails(["fit", scene, "--out", str(tmp_path / "o")], capsys, "fit.clumps", "not available")
+
+
+def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
+    doc = {"observations": [{"filter": "f150w", "image": "a.fits", "error": "ERR",
+                             "weight": None}], "fit": {"clumps": "starts.ecsv"}}
+    doc["observations"][0].pop("weight")
+    sc = parse_observation_scene(doc, str(tmp_path / "s.toml"))
+    assert sc.observations[0].filter == "F150W"
+    assert sc.observations[0].image == str(tmp_path / "a.fits")
+    assert sc.observations[0].error == "ERR"          # an HDU name stays a name
+    assert sc.fit.clumps == str(tmp_path / "starts.ecsv")
+    with pytest.raises(ConfigError, match="fit.clump_re_max_arcsec"):
+        parse_observation_scene({"observations": doc["observations"],
+                                 "fit": {"clump_re_max_arcsec": -1.0}})
+
+
+# ----------------------------------------------------------------------------- a mock fitted back
+
+
+def _mock_scene(tmp_path, seed=0):
+    """Two bands in MJy/sr (0.03″ and 0.06″ pixels) with a WCS rotated by 35°: a host and two
+    clumps rendered by the fit's own model on the data grids, Gaussian noise; starts for the
+    clumps offset by ~1.5 pixels from the truth (never the truth)."""
+    import jax.numpy as jnp
+
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.fit import make_model_factory
+    from clumpylen_jax.observations.frame import BandFrame, celestial_wcs
+    from clumpylen_jax.source import Clumps, Sersic, Source
+
+    rng = np.random.default_rng(seed)
+    pixar = {0.03: (0.03 / 206264.806) ** 2, 0.06: (0.06 / 206264.806) ** 2}
+    bands = [("F150W", 0.03, (40, 40), 0.004), ("F444W", 0.06, (20, 20), 0.003)]
+    headers = [celestial_header(shape, pix, 35.0) for _, pix, shape, _ in bands]
+    frames = [BandFrame(shape, pix, celestial_wcs(h)) for (_, pix, shape, _), h in
+              zip(bands, headers)]
+    frame = fit_frame(frames, [b[0] for b in bands])
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    truth = Source(
+        bulge=Sersic(flux=f([1.2, 1.0]), re_arcsec=f(0.2), n=f(1.0), q=f(0.45), pa_rad=f(0.6),
+                     center_arcsec=f([0.02, -0.03])),
+        clumps=Clumps(center_arcsec=f([[0.15, 0.10], [-0.2, -0.12]]), flux=f([[0.3, 0.15],
+                                                                             [0.2, 0.25]]),
+                      re_arcsec=f([0.03, 0.05]), n=f([1.0, 1.0]), q=f([1.0, 1.0]),
+                      pa_rad=f([0.0, 0.0])))
+
+    class _Ob:   # what make_model_factory reads of an observation
+        def __init__(self, name, psf):
+            self.name, self.psf = name, psf
+
+    from clumpylen_jax.psf import load_psf_fits
+    psfs = [load_psf_fits(gaussian_psf_file(tmp_path / f"psf_{n}.fits", 1.3, 15, pix))
+            for n, pix, _, _ in bands]
+    opts = FitOptions(clumps="starts.ecsv")
+    model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
+    images = [np.asarray(i) for i in model.band_images(truth)]
+    tables = []
+    for (name, pix, shape, sigma), h, img in zip(bands, headers, images):
+        sci = img + rng.normal(0, sigma, shape)
+        path = write_cutout(tmp_path / f"{name}_i2d.fits", sci, np.full(shape, sigma), header=h,
+                            extra={"PIXAR_SR": pixar[pix]})
+        tables.append({"filter": name, "image": path, "psf": str(tmp_path / f"psf_{name}.fits")})
+    # starts: the truth moved by ~1.5 SW pixels, written as RA/Dec
+    start = np.asarray(truth.clumps.center_arcsec) + np.array([[0.04, -0.03], [-0.03, -0.04]])
+    ra, dec = frame.radec(start)
+    from astropy.table import Table
+    Table({"ra_deg": ra, "dec_deg": dec}).write(tmp_path / "starts.ecsv", overwrite=True)
+    scene = _scene(tmp_path, tables, fit='clumps = "starts.ecsv"\n')
+    zps = [zeropoint_mjy_sr(pixar[b[1]]) for b in bands]
+    return scene, truth, frame, zps
+
+
+@pytest.mark.slow
+def test_mock_mjy_sr_rotated_wcs_two_scales_fitted_back_with_honest_pulls(tmp_path):
+    import json
+
+    from astropy.table import Table
+    scene, truth, frame, zps = _mock_scene(tmp_path)
+    assert main(["fit", scene, "--out", str(tmp_path / "out"), "-q"]) == 0
+    t = Table.read(tmp_path / "out" / "fit.ecsv")
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["success"] and summary["n_clumps"] == 2
+    for band, chi2 in summary["chi2_per_dof"].items():
+        assert 0.85 < chi2 < 1.15, (band, chi2)
+    # match rows to the truth by position (the fit may reorder nothing, but say so)
+    true_radec = frame.radec(np.asarray(truth.clumps.center_arcsec))
+    pulls = []
+    for i in range(2):
+        j = int(np.argmin(np.hypot(t["ra_deg"] - true_radec[0][i], t["dec_deg"] - true_radec[1][i])))
+        for b, (name, zp) in enumerate(zip(("F150W", "F444W"), zps)):
+            true_mag = zp - 2.5 * np.log10(float(truth.clumps.flux[i, b]))
+            pulls.append((t[f"mag_{name}"][j] - true_mag) / t[f"mag_{name}_err"][j])
+        pulls.append((t["ra_deg"][j] - true_radec[0][i]) / t["ra_deg_err"][j])
+        pulls.append((t["dec_deg"][j] - true_radec[1][i]) / t["dec_deg_err"][j])
+        pulls.append((t["re_arcsec"][j] - float(truth.clumps.re_arcsec[i])) / t["re_arcsec_err"][j])
+    pulls = np.asarray(pulls, float)
+    assert np.all(np.isfinite(pulls)) and np.max(np.abs(pulls)) < 4.0, pulls
+    host = summary["host"]
+    assert abs(host["re_arcsec"] - 0.2) < 4 * host["re_arcsec_err"]
+    for name in ("residuals_F150W.fits", "residuals_F444W.fits", "clumps.reg", "fit.png"):
+        assert (tmp_path / "out" / name).is_file()
+    with fits.open(tmp_path / "out" / "residuals_F444W.fits") as h:
+        assert [x.name for x in h[1:]] == ["DATA", "MODEL", "RESIDUAL", "CHI"]
+        assert h["CHI"].header["CTYPE1"].startswith("RA")
+
+
+def test_simulation_fit_path_rejects_all_nan_and_reads_sci(tmp_path, capsys):
+    """Issue 22: `fit SCENE --image` reads the SCI HDU and refuses an image with no usable pixel."""
+    nan = write_cutout(tmp_path / "nan.fits", np.full((5, 5), np.nan), bunit=None)
+    _fails(["fit", "single-sersic", "--image", f"F200W={nan}", "--out", str(tmp_path / "o")],
+           capsys, "--image F200W", "usable pixels")
+    from clumpylen_jax.cli import _read_fit_image
+    img, var = _read_fit_image("F200W", write_cutout(tmp_path / "s.fits", np.ones((4, 6)), bunit=None))
+    assert img.shape == (4, 6) and var is None
+
+
+def test_fit_without_clumps_reports_the_host():
+    """Issue 22: fit.ecsv's header carries the fitted host (flux, R_e, centre) with errors."""
+    import jax.numpy as jnp
+
+    from clumpylen_jax.inference.params import make_state, parametrize
+    from clumpylen_jax.inference.run import _host_meta
+    from clumpylen_jax.source import Sersic, Source
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    src = Source(bulge=Sersic(f([3.0]), f(0.2), f(1.0), f(0.7), f(0.1), f([0.01, -0.02])))
+    param = parametrize(make_state(src, 1), ["bulge.flux", "bulge.re_arcsec", "bulge.center_arcsec"])
+    meta = _host_meta(param.template, param, [0.1, 0.01, 0.002, 0.003])
+    assert meta["bulge"]["flux"] == [3.0] and meta["bulge"]["flux_err"] == [0.1]
+    assert meta["bulge"]["re_arcsec_err"] == 0.01
+    assert meta["bulge"]["center_arcsec_err"] == [0.002, 0.003]
+
+
+REAL = __import__("pathlib").Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+@pytest.mark.skipif(not (REAL / "rxj1131").is_dir(), reason="real data absent")
+def test_real_hst_cutout_with_noise_model_and_psf_extension(tmp_path, capsys):
+    """RXJ1131 F814W: e-/s without BUNIT, BKG_RMS and EXPTIME, PSF in an extension."""
+    path = str(REAL / "rxj1131" / "rxj1131_f814w.fits")
+    spec = ObservationSpec(filter="F814W", image=path, units="e-/s", zeropoint_ab=25.94,
+                           noise={"background_rms": 0.0075095, "exptime_s": 1980.0},
+                           psf=path, psf_hdu="PSF")
+    ob = read_observation(spec)
+    assert ob.frame.pixel_arcsec == pytest.approx(0.04999) and ob.frame.wcs is None
+    assert ob.mask.all() and ob.psf.array.sum() == pytest.approx(1.0)
+    assert ob.variance_for(np.ones(ob.data.shape))[0, 0] == pytest.approx(0.0075095**2 + 1 / 1980.0)
+    # without units the file is refused, naming the keyword to add
+    scene = _scene(tmp_path, [{"filter": "F814W", "image": path,
+                               "noise": {"background_rms": 0.0075, "exptime_s": 1980.0}}])
+    _fails(["fit", scene, "--out", str(tmp_path / "o")], capsys, "BUNIT", "rxj1131_f814w.fits")
+
+
+@pytest.mark.skipif(not (REAL / "abell_s1063_sys4_im1").is_dir(), reason="real data absent")
+def test_real_jwst_cutouts_read_in_mjy_sr_with_pixscale():
+    d = REAL / "abell_s1063_sys4_im1"
+    obs = [read_observation(ObservationSpec(filter=f.upper(), image=str(d / f"s1063_sys4_im1_{f}.fits"),
+                                            psf=str(d / f"psf_webbpsf_{f}.fits")))
+           for f in ("f115w", "f150w", "f200w")]
+    # 1 MJy/sr over a (0.03123″)² pixel: ZP = −2.5 log10(10⁶ Ω / 3631)
+    omega = (0.031230659851709842 / 206264.80624709636) ** 2
+    for ob in obs:
+        assert ob.zeropoint_ab == pytest.approx(-2.5 * np.log10(1e6 * omega / 3631.0), abs=1e-9)
+        assert ob.units_how == "MJy/sr x pixel_arcsec^2" and ob.mask.sum() == 120 * 120
+    fr = fit_frame([o.frame for o in obs], [o.name for o in obs])
+    assert all(g == fr.grids[0] for g in fr.grids)
+
+
+def test_ds9_region_mask_leaves_pixels_out(tmp_path):
+    sci = np.random.default_rng(4).normal(size=(30, 30))
+    path = write_cutout(tmp_path / "m.fits", sci, np.ones_like(sci), extra={"PIXSCALE": 0.03})
+    reg = tmp_path / "star.reg"
+    reg.write_text("# Region file format: DS9\nimage\ncircle(11,21,3)\n")   # 1-based centre
+    ob = read_observation(ObservationSpec(filter="F150W", image=path, mask=str(reg)))
+    assert not ob.mask[20, 10] and ob.mask[20, 20] and 20 < (~ob.mask).sum() < 40
+
+
+def test_local_lens_maps_image_ellipses_to_the_source_plane():
+    """β = A θ: a round image of R_e r behind pure convergence κ is a round source of R_e
+    (1 − κ) r; behind shear γ1 it is an ellipse of axes (1 − κ ∓ γ1) r along β1/β2."""
+    from clumpylen_jax.observations.answers import _ellipse_through
+    from clumpylen_jax.observations.config import LocalLens
+    lens = LocalLens(0.6, (0.0, 0.0))
+    re, q, _ = _ellipse_through(np.asarray(lens.matrix), 0.1, 1.0, 0.0)
+    assert re == pytest.approx(0.04) and q == pytest.approx(1.0)
+    assert lens.magnification == pytest.approx(1 / 0.4**2)
+    lens = LocalLens(0.5, (0.2, 0.0))                      # A = diag(0.3, 0.7)
+    re, q, pa = _ellipse_through(np.asarray(lens.matrix), 0.1, 1.0, 0.0)
+    assert re == pytest.approx(0.07) and q == pytest.approx(0.3 / 0.7)
+    assert abs(np.sin(pa)) == pytest.approx(1.0)           # major axis along β2
+
+
+@pytest.mark.slow
+def test_clump_that_grows_from_1_to_5_pixels_matches_a_start_at_5(tmp_path):
+    """Issue 17 item 2: stamps are built for the R_e bound, so a clump started at R_e = 1 px
+    that converges to 5 px is not truncated: the same answer as a start at 5 px."""
+    import jax.numpy as jnp
+
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.fit import fit_observations, make_model_factory
+    from clumpylen_jax.observations.run import read_scene_data
+    from clumpylen_jax.observations.config import load_observation_scene
+    from clumpylen_jax.source import Clumps, Source
+
+    pix, shape = 0.03, (36, 36)
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    truth = Source(clumps=Clumps(center_arcsec=f([[0.01, -0.02]]), flux=f([[2.0]]),
+                                 re_arcsec=f([5 * pix]), n=f([1.0]), q=f([1.0]), pa_rad=f([0.0])))
+    path = write_cutout(tmp_path / "c.fits", np.random.default_rng(6).normal(0, 0.01, shape),
+                        np.full(shape, 0.01), extra={"PIXSCALE": pix})
+    scene = load_observation_scene(_scene(tmp_path, [{"filter": "F150W", "image": path}],
+                                          fit='host = "none"\nclumps = "none"\n'))
+    obs, frame = read_scene_data(scene)
+    opts = FitOptions(host="none", clumps="none", clump_re_max_arcsec=0.3)
+    img = np.asarray(make_model_factory(obs, frame, opts)(truth).band_images(truth)[0])
+    rng = np.random.default_rng(5)
+    obs = [__import__("dataclasses").replace(obs[0], data=img + rng.normal(0, 0.01, shape))]
+    answers = []
+    for re0 in (1 * pix, 5 * pix):
+        fit = fit_observations(obs, frame, opts, {"phi": np.array([[0.02, 0.0]]),
+                                                  "re_arcsec": np.array([re0])})
+        answers.append((float(fit.state.source.clumps.re_arcsec[0]),
+                        float(fit.state.source.clumps.flux[0, 0])))
+        assert fit.success
+    (re_a, f_a), (re_b, f_b) = answers
+    # the two optima agree to the solver's tolerance (2.5e-4 in R_e measured), far below σ
+    assert re_a == pytest.approx(re_b, rel=1e-3) and f_a == pytest.approx(f_b, rel=1e-3)
+    assert re_a == pytest.approx(5 * pix, rel=0.1)
