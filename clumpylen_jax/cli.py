@@ -448,6 +448,7 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2), already printed
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+    saved_switch = os.environ.get("CLUMPYLEN_NO_CACHE")  # --no-cache sets it for this command only
     try:
         return args.func(args)
     except (ConfigError, _UserError) as exc:
@@ -475,6 +476,11 @@ def main(argv: list[str] | None = None) -> int:
 
         print(f"clumpylen: error: {describe_oserror(exc)}", file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        if saved_switch is None:
+            os.environ.pop("CLUMPYLEN_NO_CACHE", None)
+        else:
+            os.environ["CLUMPYLEN_NO_CACHE"] = saved_switch
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -18,7 +18,7 @@ except ImportError:  # hypothesis is a test extra; tests that need it skip
     settings = None
 
 if settings is not None:
-    settings.register_profile("ci", max_examples=8, deadline=None, derandomize=True,
+    settings.register_profile("ci", max_examples=5, deadline=None, derandomize=True,
                               suppress_health_check=[HealthCheck.too_slow])
     settings.register_profile("thorough", max_examples=300, deadline=None,
                               suppress_health_check=[HealthCheck.too_slow])

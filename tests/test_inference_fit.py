@@ -37,6 +37,7 @@ def _fit(model, observe, truth, start, seed):
     return param, res, unc
 
 
+@pytest.mark.slow  # 40-80 s: the thorough profile (pytest -m slow); keeps make test under 10 min
 def test_map_recovers_bright_clumps_within_fisher_errors(setup):
     model, observe = setup
     start = _src([[-0.28, 0.12], [0.23, -0.21], [0.07, 0.31]], [4.0, 3.5, 1.5])

@@ -49,6 +49,7 @@ def test_gradient_matches_finite_differences(scene, kind):
     _check_gradient(make_log_likelihood(model, data, param), u)
 
 
+@pytest.mark.slow  # 40-80 s: the thorough profile (pytest -m slow); keeps make test under 10 min
 def test_lensed_sis_gradient(scene):
     from clumpylen_jax.lensing.analytic import SIS
     src = Source(clumps=Clumps(jnp.array([[0.05, 0.02], [0.0, -0.03]]), jnp.array([[3.0], [2.0]]),

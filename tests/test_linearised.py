@@ -168,6 +168,7 @@ def test_hybrid_matches_analytic_reference_and_traces_caustic_clumps():
     assert abs(lp.sum() / lpa.sum() - 1) < 2e-3
 
 
+@pytest.mark.slow  # 40-80 s: the thorough profile (pytest -m slow); keeps make test under 10 min
 def test_hybrid_gradients_match_finite_differences(cluster_hybrid):
     src, bands, kw, m = cluster_hybrid
     data = eqx.filter_jit(lambda m, s: m.band_images(s)[0])(m, src) * 1.1

@@ -359,6 +359,7 @@ def test_gradient_of_chi2_matches_finite_differences_on_a_lensed_psf_scene():
     assert checked >= 30
 
 
+@pytest.mark.slow  # 40-80 s: the thorough profile (pytest -m slow); keeps make test under 10 min
 def test_float32_model_is_finite_and_close_to_float64():
     src = _full_source()
     lens = SIS(f64(1.0), f64([0.0, 0.0]))

@@ -10,6 +10,7 @@ compiled in the default run. See notebooks/README.md for how to add one.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -19,13 +20,26 @@ ALL = sorted(NOTEBOOKS.glob("*.ipynb"))
 SMALL_CELL = "SMALL = True  # injected by tests/test_notebook.py: the notebook's small settings"
 
 
-def _slow(path) -> bool:
-    """Notebook metadata {"clumpylen": {"slow": true}}: over the default run's time even when small."""
-    meta = json.loads(path.read_text(encoding="utf-8")).get("metadata", {})
-    return bool(meta.get("clumpylen", {}).get("slow"))
+SHARED_DATA = Path(os.environ.get("CLUMPYLEN_SHARED_DATA")
+                   or Path(__file__).resolve().parents[2] / "shared" / "data")
 
 
-RUNS = [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if _slow(p) else []) for p in ALL]
+def _meta(path) -> dict:
+    """Notebook metadata "clumpylen": {"slow": true} (over the default run's time even when
+    small) and/or {"needs_data": "real/..."} (a folder of ../shared/data; skipped without it)."""
+    return json.loads(path.read_text(encoding="utf-8")).get("metadata", {}).get("clumpylen", {})
+
+
+def _marks(path) -> list:
+    meta = _meta(path)
+    marks = [pytest.mark.slow] if meta.get("slow") else []
+    need = meta.get("needs_data")
+    if need and not (SHARED_DATA / need).is_dir():
+        marks.append(pytest.mark.skip(reason=f"shared data not found at {SHARED_DATA / need}"))
+    return marks
+
+
+RUNS = [pytest.param(p, id=p.stem, marks=_marks(p)) for p in ALL]
 
 
 def test_there_are_notebooks():
@@ -58,6 +72,7 @@ def test_notebook_runs(path, monkeypatch):
     import nbformat
 
     monkeypatch.setenv("MPLBACKEND", "Agg")  # no display on the test machine
+    monkeypatch.setenv("CLUMPYLEN_REAL_DATA", str(SHARED_DATA / "real"))
     nb = nbformat.read(path, as_version=4)
     tagged = [i for i, c in enumerate(nb.cells) if "parameters" in c.metadata.get("tags", [])]
     if tagged:

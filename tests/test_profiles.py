@@ -171,6 +171,7 @@ def _disk(amplitude, texture=None, q=0.8, incl=0.3):
     return Disk(s, jnp.asarray(incl), arms, texture)
 
 
+@pytest.mark.slow  # 40-80 s: the thorough profile (pytest -m slow); keeps make test under 10 min
 def test_arms_keep_the_disk_flux_and_set_the_contrast():
     grid = Grid(-80, -80, 1.0, 161, 161)
     f = jax.jit(lambda d: render.disk_image(d, grid))

@@ -168,8 +168,11 @@ def test_simulate_resume_interrupt_and_determinism(tmp_path, monkeypatch):
     other = load_study(_write(tmp_path, SIMULATE.replace("{samples}", "5"), "other.toml"))
     with pytest.raises(ConfigError, match="--out"):
         run_study(other, tmp_path / "a", scheduler="synchronous", progress=False)
+    monkeypatch.delenv("CLUMPYLEN_NO_CACHE", raising=False)
     assert runner.cache_dir().endswith(os.path.join("clumpylen_jax", "jax")) or \
         os.environ.get("CLUMPYLEN_CACHE")
+    monkeypatch.setenv("CLUMPYLEN_NO_CACHE", "1")   # the one switch turns the workers' cache off too
+    assert runner.cache_dir() is None
 
 
 # ------------------------------------------------------------------ a real Dask cluster
