@@ -250,15 +250,6 @@ def test_repeated_or_unknown_image_band_is_an_error(tmp_path, capsys):
            capsys, "--image", "F444W")
 
 
-def test_fit_auto_without_the_auto_module_says_so(tmp_path, capsys):
-    from clumpylen_jax.observations.run import _auto_available
-    if _auto_available():
-        pytest.skip("inference.auto is available: 'auto' is wired")
-    scene = _scene(tmp_path, [{"filter": "F150W", "image": _good(tmp_path)}],
-                   fit='clumps = "auto"\n')
-    _fails(["fit", scene, "--out", str(tmp_path / "o")], capsys, "fit.clumps", "not available")
-
-
 def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
     doc = {"observations": [{"filter": "f150w", "image": "a.fits", "error": "ERR",
                              "weight": None}], "fit": {"clumps": "starts.ecsv"}}

@@ -63,14 +63,6 @@ def catalogue_starts(path: str, frame) -> dict:
     return {"phi": np.asarray(phi, float).reshape(-1, 2), "re_arcsec": re}
 
 
-def _auto_available():
-    try:
-        from ..inference import auto  # noqa: F401
-        return hasattr(auto, "fit_without_truth")
-    except ImportError:
-        return False
-
-
 def auto_starts(observations, frame, scene) -> dict:
     """Clumps found and counted in the data by `inference.auto.fit_without_truth` (its seeding,
     criterion and multi-start), on this module's model of the data's pixels; its clumps then
@@ -106,10 +98,6 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
     opts = scene.fit
     starts = None
     if opts.clumps == "auto":
-        if not _auto_available():
-            raise ConfigError("fit.clumps", "auto", "a catalogue path of starting guesses or "
-                              "\"none\": finding clumps without a catalogue (inference.auto) is "
-                              "not available in this build yet")
         starts = auto_starts(obs, frame, scene)
     elif opts.clumps != "none":
         starts = catalogue_starts(opts.clumps, frame)
