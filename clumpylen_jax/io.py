@@ -34,6 +34,7 @@ __all__ = [
     "write_catalog",
     "write_fits_image",
     "write_json",
+    "write_residual_fits",
 ]
 
 
@@ -180,6 +181,25 @@ def write_band_fits(path, image, *, noiseless, variance, unlensed=None, header: 
     ]
     if unlensed is not None:
         hdus.append(_image_hdu(fits.ImageHDU, unlensed, unlensed_wcs, cards, "UNLENSED"))
+    with atomic_write(path) as tmp:
+        fits.HDUList(hdus).writeto(tmp, overwrite=True)
+
+
+def write_residual_fits(path, data, model, chi, *, header, chi_bunit: str,
+                        primary_header=None) -> None:
+    """A fit's residuals file: an empty primary HDU, then DATA, MODEL, RESIDUAL (= DATA − MODEL)
+    and CHI as float32 extensions, each with the cards of `header` (a dict or a FITS
+    header, e.g. BUNIT and FILTER, or a WCS); CHI's BUNIT is `chi_bunit`."""
+    from astropy.io import fits
+
+    data, model = np.asarray(data), np.asarray(model)
+    hdus = [fits.PrimaryHDU(header=primary_header)]
+    for ext, arr in (("DATA", data), ("MODEL", model), ("RESIDUAL", data - model), ("CHI", chi)):
+        h = fits.ImageHDU(np.asarray(arr).astype(np.float32), name=ext)
+        h.header.update(header)
+        if ext == "CHI":
+            h.header["BUNIT"] = chi_bunit
+        hdus.append(h)
     with atomic_write(path) as tmp:
         fits.HDUList(hdus).writeto(tmp, overwrite=True)
 

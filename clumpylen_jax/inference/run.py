@@ -47,9 +47,7 @@ class FitRun:
 
 
 def _write_residuals(out: Path, scene_model, data, state) -> list:
-    from astropy.io import fits
-
-    from ..io import atomic_write
+    from ..io import write_residual_fits
 
     paths = []
     model = predicted_images(scene_model, state)
@@ -58,17 +56,10 @@ def _write_residuals(out: Path, scene_model, data, state) -> list:
         mu = np.asarray(model[k])
         var = (np.asarray(data.variances[k]) if data.variances is not None
                else np.maximum(mu, 1e-12) / data.exptime_s[k])
-        resid = d - mu
-        chi = np.asarray(data.masks[k]) * resid / np.sqrt(var)
-        hdus = [fits.PrimaryHDU()]
-        for ext, arr in (("DATA", d), ("MODEL", mu), ("RESIDUAL", resid), ("CHI", chi)):
-            h = fits.ImageHDU(arr.astype(np.float32), name=ext)
-            h.header["BUNIT"] = "counts/s" if ext != "CHI" else ""
-            h.header["FILTER"] = name
-            hdus.append(h)
+        chi = np.asarray(data.masks[k]) * (d - mu) / np.sqrt(var)
         path = out / f"residuals_{name}.fits"
-        with atomic_write(path) as tmp:
-            fits.HDUList(hdus).writeto(tmp, overwrite=True)
+        write_residual_fits(path, d, mu, chi, header={"BUNIT": "counts/s", "FILTER": name},
+                            chi_bunit="")
         paths.append(path)
     return paths
 

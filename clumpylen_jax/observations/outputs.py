@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write, write_catalog, write_json
+from ..io import atomic_write, write_catalog, write_json, write_residual_fits
 
 
 def _wcs_header(ob, frame_band):
@@ -24,24 +24,15 @@ def _wcs_header(ob, frame_band):
 
 def write_residuals(out: Path, observations, fit) -> list:
     """residuals_<FILTER>.fits: DATA, MODEL, RESIDUAL, CHI on the data's pixels and WCS."""
-    from astropy.io import fits
     paths = []
     for k, ob in enumerate(observations):
         mu = np.asarray(fit.images[k], float)
         var = np.asarray(fit.data.variances[k], float)
         d = np.where(ob.mask, ob.data, np.nan)
-        resid = d - mu
-        chi = np.where(ob.mask, resid / np.sqrt(var), np.nan)
+        chi = np.where(ob.mask, (d - mu) / np.sqrt(var), np.nan)
         hdr = _wcs_header(ob, ob.frame)
-        hdus = [fits.PrimaryHDU(header=hdr)]
-        for ext, arr in (("DATA", d), ("MODEL", mu), ("RESIDUAL", resid), ("CHI", chi)):
-            h = fits.ImageHDU(arr.astype(np.float32), header=hdr, name=ext)
-            if ext == "CHI":
-                h.header["BUNIT"] = "sigma"
-            hdus.append(h)
         path = out / f"residuals_{ob.name}.fits"
-        with atomic_write(path) as tmp:
-            fits.HDUList(hdus).writeto(tmp, overwrite=True)
+        write_residual_fits(path, d, mu, chi, header=hdr, chi_bunit="sigma", primary_header=hdr)
         paths.append(path)
     return paths
 
