@@ -440,14 +440,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run `clumpylen` with `argv` (default sys.argv[1:]); returns the exit status."""
-    from . import enable_float64
-
-    enable_float64()  # the command computes in float64 unless a scene asks for float32
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2), already printed
         return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_USAGE
+    if args.command not in ("scenes", "show"):  # those two stay free of JAX
+        from . import enable_float64
+
+        enable_float64()  # the command computes in float64 unless a scene asks for float32
     saved_switch = os.environ.get("CLUMPYLEN_NO_CACHE")  # --no-cache sets it for this command only
     try:
         return args.func(args)

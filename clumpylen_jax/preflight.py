@@ -106,19 +106,21 @@ def _stamp_side(scene) -> float:
     size relation at the mean CMF mass."""
     from .model import _radius_enclosing
 
+    from .cosmology import arcsec_per_pc, make_cosmology
+
     cl = scene.source.clumps
+    scale = arcsec_per_pc(scene.z_source, make_cosmology(scene.cosmology.H0, scene.cosmology.Om0))
     if cl.catalog is not None:
         from .population import read_clump_catalog
-        t = read_clump_catalog(cl.catalog, arcsec_per_pc=1.0, sersic_n_default=cl.sersic_n)
+        # the scene's own scale: a catalogue giving only re_pc gets its sizes in arcsec
+        t = read_clump_catalog(cl.catalog, arcsec_per_pc=scale, sersic_n_default=cl.sersic_n)
         re, n = np.asarray(t["re_arcsec"], float), np.asarray(t["sersic_n"], float)
     else:
-        from .cosmology import arcsec_per_pc, make_cosmology
         from .population import clump_config_from_scene
         c = clump_config_from_scene(dataclasses.asdict(cl))
         mean_mass = cl.mass_fraction * (cl.cmf.m_min_msun * cl.cmf.m_max_msun) ** 0.5
         re_pc = c.size_norm_pc * (min(mean_mass, c.cmf_m_max_msun) / c.size_pivot_msun) ** c.size_slope
-        re = np.array([re_pc * arcsec_per_pc(scene.z_source, make_cosmology(
-            scene.cosmology.H0, scene.cosmology.Om0))])
+        re = np.array([re_pc * scale])
         n = np.array([cl.sersic_n])
     r = _radius_enclosing(_STAMP_FLUX_FRACTION, re, n)
     return float(np.sqrt(np.mean((2 * r / scene.render.source_pixel_arcsec + 3) ** 2)))

@@ -129,9 +129,9 @@ _LENS_PARAM_DEFAULTS = {name: default for _, schema in D.LENS_KINDS.values()
 # `source_flux_fraction` the fraction of each host component's light inside the
 # source-plane disc whose images are ray-traced (the rest, a faint halo, is not
 # simulated: 1 % of an n = 4 bulge at 0.99; raise it towards 1 to keep it).
-# The values come from clumpylen_jax.model.ACCURACY_PRESETS, chosen by benchmarks/.
+# The values come from clumpylen_jax.accuracy.ACCURACY_PRESETS, chosen by benchmarks/.
 def _scene_presets() -> dict[str, dict[str, Any]]:
-    from .model import ACCURACY_PRESETS as model_presets
+    from .accuracy import ACCURACY_PRESETS as model_presets
     return {name: {"subsampling": a.lens_subsampling, "psf_oversampling": a.psf_oversampling,
                    "source_mode": a.source_mode, "linearise_tolerance": a.linearise_tolerance,
                    "source_flux_fraction": a.source_flux_fraction}
@@ -139,7 +139,7 @@ def _scene_presets() -> dict[str, dict[str, Any]]:
 
 
 def _source_modes() -> tuple:
-    from .model import SOURCE_MODES as modes
+    from .accuracy import SOURCE_MODES as modes
     return modes
 
 

@@ -38,3 +38,13 @@ def test_float64_with_x64_off_is_a_config_error_naming_render_dtype():
     finally:
         cl.enable_float64()
     assert cl.float64_enabled() and jnp.asarray(1.0).dtype == jnp.float64
+
+
+def test_listing_scenes_does_not_import_jax():
+    """`clumpylen scenes` / `show` and parsing a scene stay light: JAX is imported only by
+    the commands that compute (cli.py's promise; scene.py reads the presets from the
+    JAX-free accuracy.py)."""
+    code = ("import sys; from clumpylen_jax.cli import main; from clumpylen_jax import scene; "
+            "main(['scenes']); scene.load_scene('single-sersic'); print('jax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "False"
