@@ -280,7 +280,8 @@ def _fit(study: Study, task: Task) -> dict:
     truth = _append(var.base, _clumps(pos, flux, re, study.clumps))
     model = var.model(n)
     noisy, _, vr = _observe(model, truth, np.uint32(sample.noise_seed))
-    # the start is not the truth: fluxes and sizes off by exp(scatter·N(0,1)), centres moved
+    # truth-seeded on purpose (the fitter's convergence and errors at scale; README "Studies"):
+    # the true count and host, fluxes and sizes off by exp(scatter·N(0,1)), centres moved
     # by scatter·R_e·|N(0,1)| (at least half a pixel) in a random direction
     s = study.options["start_scatter"]
     f = sample.start_factors
