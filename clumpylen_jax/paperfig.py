@@ -221,13 +221,10 @@ def paper_figure_of_run(run_dir, out_dir=None, *, curves=None):
     curves: the critical curves ((N, 2) arrays, arcsec); computed from the run's lens when None.
     Returns the path, or None when the run has nothing to show.
     """
-    import json
-
-    from .analysis import _lens_from_summary, _read_catalog, band_data
+    from .analysis import _lens_from_summary, _read_catalog, _read_summary, band_data
 
     run_dir = Path(run_dir)
-    with open(run_dir / "summary.json", encoding="utf-8") as fh:
-        summary = json.load(fh)
+    summary = _read_summary(run_dir)   # a ConfigError naming the file when it is corrupt
     bands = {b["filter"]: b for b in (band_data(p) for p in sorted((run_dir / "bands").glob("*.fits")))}
     lens = _lens_from_summary(summary, run_dir)
     field = summary.get("field_arcsec")

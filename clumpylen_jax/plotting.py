@@ -21,7 +21,6 @@ io.atomic_write.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -250,15 +249,14 @@ def _rows_with(catalog, *columns):
 
 def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     """Make every figure the run supports; returns the PNG paths (in out_dir, default RUN/plots)."""
-    from .analysis import _lens_from_summary, _read_catalog, band_data
+    from .analysis import _lens_from_summary, _read_catalog, _read_summary, band_data
     from .paperfig import paper_figure_of_run
 
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").exists():
         raise FileNotFoundError(f"not a run directory (no summary.json): {run_dir}")
     out = Path(out_dir) if out_dir is not None else run_dir / "plots"
-    with open(run_dir / "summary.json", encoding="utf-8") as fh:
-        summary = json.load(fh)
+    summary = _read_summary(run_dir)   # a ConfigError naming the file when it is corrupt
     catalog = _read_catalog(run_dir)
     written = []
     # clumps given by magnitudes have no mass (NaN): those figures show the clumps that have one
