@@ -70,7 +70,7 @@ def _hr_lensed(run_dir, summary):
 
 
 def _psf_panel(summary, bands, names, images, run_dir):
-    """(image, wcs, title) of the HR channel convolved with the nearest band's PSF, or None."""
+    """(image, wcs, title, band) of the HR channel convolved with the nearest band's PSF, or None."""
     from scipy.signal import fftconvolve
 
     from .psf import psf_for_band, resample_psf
@@ -95,7 +95,7 @@ def _psf_panel(summary, bands, names, images, run_dir):
                        base_dir=run_dir)
     kernel = resample_psf(psf, pix, size=min(2 * (int(1.0 / pix) // 2) + 1, 401))  # 1" across at most
     conv = fftconvolve(img, kernel, mode="same")
-    return conv, wcs, f"high resolution {name} convolved with the {band} PSF (no pixels, no noise)"
+    return conv, wcs, f"high resolution {name} convolved with the {band} PSF (no pixels, no noise)", band
 
 
 def _composite(bands, triple):
@@ -168,8 +168,7 @@ def plot_paper_rgb(run_dir, path, *, summary, bands, catalog=None, lens=None, cu
     if names:
         got = _psf_panel(summary, bands, names, hr, run_dir)
         if got is not None:
-            conv, w, title = got
-            psf_band = title.split(" the ")[1].split()[0]
+            conv, w, title, psf_band = got
             panels.append((conv, rgbimage.extent_of_wcs(w, conv.shape), w, title, "gray"))
     for triple in (out.get("rgb") or [])[:2]:
         if all(f in bands for f in triple):
