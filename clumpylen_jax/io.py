@@ -1,5 +1,5 @@
 """Files on disk: atomic writes, FITS images with a TAN WCS in the θ frame,
-ECSV catalogues, JSON summaries and RGB PNGs.
+ECSV catalogues and JSON summaries (colour PNGs: `rgbimage`).
 
 Every writer goes through `atomic_write`, so an interrupted run never leaves a
 half-written file under the final name.
@@ -27,7 +27,6 @@ import numpy as np
 __all__ = [
     "atomic_write",
     "make_wcs",
-    "save_rgb_png",
     "theta_to_radec",
     "radec_to_theta",
     "write_band_fits",
@@ -249,44 +248,3 @@ def write_json(path, obj) -> None:
     text = json.dumps(_jsonable(obj), indent=2, allow_nan=False)
     with atomic_write(path, "w") as fh:
         fh.write(text + "\n")
-
-
-# ----------------------------------------------------------------------------
-# Colour images
-# ----------------------------------------------------------------------------
-
-
-def save_rgb_png(path, r, g, b, *, stretch: float | None = None, Q: float | None = None,
-                 minimum=None) -> np.ndarray:
-    """Save a Lupton et al. (2004) asinh colour composite as PNG (north up: row 0 at the bottom).
-
-    r, g, b: 2-D images of the same shape in comparable flux units. With no
-    `minimum`, each channel's 10th percentile is subtracted (the sky). With no
-    `stretch`, it is chosen so that the 99.5th percentile of the mean
-    intensity reaches saturation for the given Q (default 6). Returns the
-    uint8 RGB array written.
-    """
-    from astropy.visualization import make_lupton_rgb
-    from matplotlib import image as mpimg  # no pyplot: no GUI backend needed
-
-    chans = [np.nan_to_num(np.asarray(c, dtype=float)) for c in (r, g, b)]
-    if not (chans[0].shape == chans[1].shape == chans[2].shape) or chans[0].ndim != 2:
-        raise ValueError("r, g, b must be 2-D images of the same shape")
-    if minimum is None:
-        minimum = [float(np.percentile(c, 10.0)) for c in chans]
-    mins = np.broadcast_to(np.asarray(minimum, dtype=float), (3,))
-    Q = 6.0 if Q is None else float(Q)
-    if stretch is None:
-        intensity = sum(np.clip(c - m, 0, None) for c, m in zip(chans, mins)) / 3.0
-        top = float(np.percentile(intensity, 99.5))
-        if not top > 0:
-            top = float(intensity.max()) or 1.0
-        # make_lupton_rgb saturates where asinh(Q I / stretch) / Q = 1.
-        stretch = top * Q / math.sinh(Q) if Q > 0 else top
-    # astropy divides by the intensity before masking where it is 0: a harmless warning
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rgb = make_lupton_rgb(chans[0], chans[1], chans[2], minimum=list(mins),
-                              stretch=float(stretch), Q=Q)
-    with atomic_write(path) as tmp:
-        mpimg.imsave(tmp, rgb, origin="lower", format="png")
-    return rgb

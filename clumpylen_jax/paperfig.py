@@ -70,7 +70,7 @@ def _hr_lensed(run_dir, summary):
 
 
 def _psf_panel(summary, bands, names, images, run_dir):
-    """(image, wcs, title) of the HR channel convolved with the nearest band's PSF, or None."""
+    """(image, wcs, title, band) of the HR channel convolved with the nearest band's PSF, or None."""
     from scipy.signal import fftconvolve
 
     from .psf import psf_for_band, resample_psf
@@ -95,7 +95,7 @@ def _psf_panel(summary, bands, names, images, run_dir):
                        base_dir=run_dir)
     kernel = resample_psf(psf, pix, size=min(2 * (int(1.0 / pix) // 2) + 1, 401))  # 1" across at most
     conv = fftconvolve(img, kernel, mode="same")
-    return conv, wcs, f"high resolution {name} convolved with the {band} PSF (no pixels, no noise)"
+    return conv, wcs, f"high resolution {name} convolved with the {band} PSF (no pixels, no noise)", band
 
 
 def _composite(bands, triple):
@@ -168,8 +168,7 @@ def plot_paper_rgb(run_dir, path, *, summary, bands, catalog=None, lens=None, cu
     if names:
         got = _psf_panel(summary, bands, names, hr, run_dir)
         if got is not None:
-            conv, w, title = got
-            psf_band = title.split(" the ")[1].split()[0]
+            conv, w, title, psf_band = got
             panels.append((conv, rgbimage.extent_of_wcs(w, conv.shape), w, title, "gray"))
     for triple in (out.get("rgb") or [])[:2]:
         if all(f in bands for f in triple):
@@ -221,13 +220,10 @@ def paper_figure_of_run(run_dir, out_dir=None, *, curves=None):
     curves: the critical curves ((N, 2) arrays, arcsec); computed from the run's lens when None.
     Returns the path, or None when the run has nothing to show.
     """
-    import json
-
-    from .analysis import _lens_from_summary, _read_catalog, band_data
+    from .analysis import _lens_from_summary, _read_catalog, _read_summary, band_data
 
     run_dir = Path(run_dir)
-    with open(run_dir / "summary.json", encoding="utf-8") as fh:
-        summary = json.load(fh)
+    summary = _read_summary(run_dir)   # a ConfigError naming the file when it is corrupt
     bands = {b["filter"]: b for b in (band_data(p) for p in sorted((run_dir / "bands").glob("*.fits")))}
     lens = _lens_from_summary(summary, run_dir)
     field = summary.get("field_arcsec")

@@ -21,7 +21,6 @@ io.atomic_write.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -250,15 +249,14 @@ def _rows_with(catalog, *columns):
 
 def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     """Make every figure the run supports; returns the PNG paths (in out_dir, default RUN/plots)."""
-    from .analysis import _lens_from_summary, _read_catalog, band_data
-    from .paperfig import paper_figure_of_run
+    from .analysis import _lens_from_summary, _read_catalog, _read_summary, band_data
+    from .paperfig import plot_paper_rgb
 
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").exists():
         raise FileNotFoundError(f"not a run directory (no summary.json): {run_dir}")
     out = Path(out_dir) if out_dir is not None else run_dir / "plots"
-    with open(run_dir / "summary.json", encoding="utf-8") as fh:
-        summary = json.load(fh)
+    summary = _read_summary(run_dir)   # a ConfigError naming the file when it is corrupt
     catalog = _read_catalog(run_dir)
     written = []
     # clumps given by magnitudes have no mass (NaN): those figures show the clumps that have one
@@ -268,10 +266,10 @@ def plot_run(run_dir, *, out_dir=None) -> list[Path]:
         written.append(plot_size_mass(rows, out / "clump_size_mass.png"))
     if len(rows := _rows_with(catalog, "mass_msun", "age_myr")):
         written.append(plot_ages(rows, out / "clump_ages.png"))
-    bands = [band_data(p) for p in sorted((run_dir / "bands").glob("*.fits"))]
+    by_file = [band_data(p) for p in sorted((run_dir / "bands").glob("*.fits"))]
     # Bands in the scene's order (blue to red as the user listed them), not alphabetical.
     order = list((summary.get("bands") or {}).keys())
-    bands.sort(key=lambda b: order.index(b["filter"]) if b["filter"] in order else len(order))
+    bands = sorted(by_file, key=lambda b: order.index(b["filter"]) if b["filter"] in order else len(order))
     lens = _lens_from_summary(summary, run_dir)
     field = summary.get("field_arcsec")
     cc = None
@@ -283,7 +281,9 @@ def plot_run(run_dir, *, out_dir=None) -> list[Path]:
     if bands:
         written.append(plot_mosaic(bands, out / "mosaic.png"))
     curves = [] if cc is None else list(cc["tangential"]) + list(cc["radial"])
-    paper = paper_figure_of_run(run_dir, out, curves=curves)
+    # the run read once: the paper figure gets the same summary, bands, catalogue and lens
+    paper = plot_paper_rgb(run_dir, out / "paper_rgb.png", summary=summary, catalog=catalog, lens=lens,
+                           bands={b["filter"]: b for b in by_file}, curves=curves)
     if paper is not None:
         written.append(paper)
     return written

@@ -183,6 +183,21 @@ def test_corrupt_summary_given_to_analyze(capsys, tmp_path):
         analyze_run(d)
 
 
+def test_corrupt_summary_given_to_plot(capsys, tmp_path):
+    """Past the manifest (rewritten after the damage), plot reads summary.json through the same
+    reader as analyze: exit 2 naming the file, no traceback; plot_run and paper_figure_of_run
+    raise the ConfigError."""
+    d = make_fake_run(tmp_path / "r")
+    (d / "summary.json").write_text('{"scene": {')
+    rundir.write_manifest(d)
+    user_error(capsys, "plot", d, fragments=["summary.json"])
+    from clumpylen_jax.paperfig import paper_figure_of_run
+    from clumpylen_jax.plotting import plot_run
+    for call in (plot_run, paper_figure_of_run):
+        with pytest.raises(ConfigError, match="summary.json"):
+            call(d)
+
+
 def test_analyze_keeps_the_run_whole_and_plot_takes_magnitude_catalogues(capsys, tmp_path):
     d = make_fake_run(tmp_path / "r")
     t = Table.read(d / "catalog.ecsv")

@@ -95,3 +95,11 @@ def test_clump_catalogue_is_a_scene_catalogue(tmp_path):
     from clumpylen_jax.scene import _check_catalog
 
     _check_catalog(str(FIX / "clumps.ecsv"), "source.clumps.catalog", ["F115W", "F150W", "F200W", "F160W"])
+
+
+def test_study_scene_fixture_is_a_scene():
+    """fixtures/study_tiny.toml parses as the scene it says (no JAX needed)."""
+    from clumpylen_jax.scene import load_scene
+
+    s = load_scene(FIX / "study_tiny.toml")
+    assert s.name == "tiny" and [b.filter for b in s.bands] == ["F200W"] and s.lens is None

@@ -107,22 +107,3 @@ def test_fits_image_catalog_json(tmp_path):
     io.write_json(tmp_path / "s.json", obj)
     back = json.loads((tmp_path / "s.json").read_text())
     assert back == {"a": 1.5, "b": [0, 1, 2], "c": [True, None], "d": None, "e": str(tmp_path), "3": 4}
-
-
-def test_rgb_png(tmp_path):
-    rng = np.random.default_rng(0)
-    y, x = np.mgrid[:40, :50]
-    blob = np.exp(-((x - 30) ** 2 + (y - 10) ** 2) / 20.0)
-    r, g, b = (blob * s + 0.01 * rng.standard_normal(blob.shape) for s in (3.0, 2.0, 1.0))
-    rgb = io.save_rgb_png(tmp_path / "rgb.png", r, g, b)
-    assert rgb.shape == (40, 50, 3) and rgb.dtype == np.uint8
-    from matplotlib import image as mpimg
-
-    png = mpimg.imread(tmp_path / "rgb.png")
-    assert png.shape[:2] == (40, 50)
-    # north up: the blob (row 10 from the bottom) is in the lower part of the PNG
-    rows = png[..., 0].sum(axis=1)
-    assert rows.argmax() > 20
-    assert rgb[10, 30, 0] >= rgb[10, 30, 2]  # redder where r is brightest
-    with pytest.raises(ValueError):
-        io.save_rgb_png(tmp_path / "bad.png", r, g, b[:10])

@@ -2,9 +2,9 @@
 
 Each notebook is executed by nbclient (the `test` extra) in the notebooks/ folder. A notebook whose
 first tagged cell is `parameters` (as in papermill) gets one cell after it that sets `SMALL = True`:
-its small scene or short run. A notebook whose metadata says {"clumpylen": {"slow": true}} (over
-the default run's time even when small) runs only with `pytest -m slow`; its cells are still
-compiled in the default run. See notebooks/README.md for how to add one.
+its small scene or short run. Every notebook runs in the default suite (`make test`); one whose
+metadata names shared data ({"clumpylen": {"needs_data": "real/..."}}) is skipped, with the reason,
+where ../shared/data lacks it. See notebooks/README.md for how to add one.
 """
 
 from __future__ import annotations
@@ -25,25 +25,34 @@ SHARED_DATA = Path(os.environ.get("CLUMPYLEN_SHARED_DATA")
 
 
 def _meta(path) -> dict:
-    """Notebook metadata "clumpylen": {"slow": true} (over the default run's time even when
-    small) and/or {"needs_data": "real/..."} (a folder of ../shared/data; skipped without it)."""
+    """Notebook metadata "clumpylen": {"needs_data": "real/..."} (a folder of ../shared/data;
+    skipped without it)."""
     return json.loads(path.read_text(encoding="utf-8")).get("metadata", {}).get("clumpylen", {})
 
 
 def _marks(path) -> list:
-    meta = _meta(path)
-    marks = [pytest.mark.slow] if meta.get("slow") else []
-    need = meta.get("needs_data")
+    need = _meta(path).get("needs_data")
     if need and not (SHARED_DATA / need).is_dir():
-        marks.append(pytest.mark.skip(reason=f"shared data not found at {SHARED_DATA / need}"))
-    return marks
+        return [pytest.mark.skip(reason=f"shared data not found at {SHARED_DATA / need}")]
+    return []
 
 
 RUNS = [pytest.param(p, id=p.stem, marks=_marks(p)) for p in ALL]
 
 
 def test_there_are_notebooks():
-    assert {"quickstart.ipynb", "simulate-and-look.ipynb", "fit-mock-arc.ipynb", "accuracy-vs-time.ipynb"} <= {p.name for p in ALL}
+    assert {"quickstart.ipynb", "simulate-and-look.ipynb", "fit-mock-arc.ipynb", "accuracy-vs-time.ipynb",
+            "fit-real-jwst.ipynb", "fit-without-truth.ipynb", "study-completeness.ipynb"} <= {p.name for p in ALL}
+
+
+@pytest.mark.parametrize("path", ALL, ids=[p.stem for p in ALL])
+def test_small_settings_and_no_slow_flag(path):
+    """Every notebook runs in the default suite: none is flagged slow (the flag is gone), and each
+    has a `parameters` cell defining SMALL, after which the test turns its small settings on."""
+    nb = json.loads(path.read_text(encoding="utf-8"))
+    assert "slow" not in _meta(path), f"{path.name}: give it SMALL settings instead of a slow flag"
+    tagged = [c for c in nb["cells"] if "parameters" in c.get("metadata", {}).get("tags", [])]
+    assert tagged and "SMALL" in "".join(tagged[0]["source"]), f"{path.name}: no parameters cell with SMALL"
 
 
 @pytest.mark.parametrize("path", ALL, ids=[p.stem for p in ALL])

@@ -20,30 +20,9 @@ from clumpylen_jax.study import load_study, run_study
 from clumpylen_jax.study.store import Store
 from clumpylen_jax.study.tasks import draw_sample, make_tasks
 
-# an unlensed exponential host in one NIRCam band on a 33 × 33 pixel field: compiles fast
-SCENE = """
-[scene]
-name = "tiny"
-seed = 1
-z_source = 2.0
-[source]
-center_arcsec = [0.0, 0.0]
-[source.bulge]
-magnitudes = { F200W = 25.0 }
-re_arcsec = 0.15
-n = 1.0
-q = 0.7
-pa_rad = 0.5
-[render]
-field_arcsec = { x = [-0.5, 0.5], y = [-0.5, 0.5] }
-accuracy = "fast"
-[[bands]]
-instrument = "JWST/NIRCam"
-filter = "F200W"
-exptime_s = 1000.0
-sky_counts_per_s = 0.16
-psf = "none"
-"""
+# fixtures/study_tiny.toml: an unlensed exponential host in one NIRCam band on a 33 × 33 pixel
+# field (compiles fast); the study files below name it "tiny.toml"
+SCENE = (Path(__file__).resolve().parents[1] / "fixtures" / "study_tiny.toml").read_text(encoding="utf-8")
 
 SIMULATE = """
 [study]
