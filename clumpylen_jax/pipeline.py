@@ -371,10 +371,17 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
 # ------------------------------------------------------------------ running and writing
 
 
+def _program(name: str, fun, *args):
+    """fun(*args) as one program (arrays traced, every other leaf static); its traced and
+    lowered form kept between runs in the cache folder (`programcache`) unless it is off."""
+    from . import programcache
+    folder = cache_root() / "programs" if cache_enabled() else None
+    return programcache.call(name, fun, *args, folder=folder)
+
+
 def _jit_call(model, method: str, *args):
     """Compile and call a SceneModel method (the model's arrays are traced, not hashed)."""
-    import equinox as eqx
-    return eqx.filter_jit(lambda m, *a: getattr(m, method)(*a))(model, *args)
+    return _program(f"SceneModel.{method}", lambda m, *a: getattr(m, method)(*a), model, *args)
 
 
 def _wcs_for(grid, scene):
@@ -563,7 +570,10 @@ def _write_hr(prep: Prepared, out: Path):
     if mono.clumps is not None and mono.clumps.count > 0:
         groups = render.stamp_groups(mono.clumps.re_arcsec, mono.clumps.n, sgrid.pixel_arcsec,
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
-    unl = np.asarray(jax.jit(lambda s: _source_plane_images(s, sgrid, prep.accuracy, groups))(mono))
+    # the stamp groups' indices as tuples: static (baked in as constants), as before
+    groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
+    unl = np.asarray(_program("source_plane_images", _source_plane_images, mono, sgrid,
+                              prep.accuracy, groups))
     lensed = None
     if model.lensed:
         lensed = np.asarray(_jit_call(model, 'lens_plane', mono))
