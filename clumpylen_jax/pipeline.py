@@ -359,11 +359,13 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         from .preflight import check_memory
         check_memory(scene, field_arcsec=field, n_clumps=0 if table is None else len(table))
     with progress.stage("model (ray tracing)" if lens is not None else "model"):
-        model = model_mod.build_model(
-            source, bands, lens=lens, field_arcsec=field,
-            lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
-            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype,
-            ray_cache=cache_root() / "rays" if cache_enabled() else None)
+        from . import modelcache
+        rays = cache_root() / "rays" if cache_enabled() else None
+        model = modelcache.build(
+            lambda *a, **k: model_mod.build_model(*a, ray_cache=rays, **k), source, bands,
+            lens=lens, folder=cache_root() / "models" if cache_enabled() else None,
+            field_arcsec=field, lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
+            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
                     host_masses, progress.timings)
 
