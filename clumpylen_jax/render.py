@@ -124,26 +124,12 @@ def clumps_brightness(clumps: Clumps, x1, x2):
 # ------------------------------------------------------------------ pixel-integrated images
 
 
-def _sampled_image(brightness, grid: Grid, order: int, dtype, loop: bool = False):
-    """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling.
-
-    loop: a loop over the order² samples instead of an unrolled sum, so that an
-    expensive profile (a textured disk's Perlin noise: hundreds of operations) is
-    compiled once instead of order² times (a third of the compile time of such a disk's
-    image). Same samples, weights and order of summation; XLA optimises the two forms
-    differently, so values differ in the last digits (≤ 2e-13 relative in float64).
-    """
+def _sampled_image(brightness, grid: Grid, order: int, dtype):
+    """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling."""
     offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))  # Python floats keep float32
     p = grid.pixel_arcsec
     xc = jnp.asarray(grid.x_centers(), dtype)[None, :]
     yc = jnp.asarray(grid.y_centers(), dtype)[:, None]
-    if loop:
-        samples = [(ox * p, oy * p, wy * wx) for oy, wy in zip(offs, wts)
-                   for ox, wx in zip(offs, wts)]
-        dx, dy, w = (jnp.asarray(v, dtype) for v in zip(*samples))
-        acc = jax.lax.fori_loop(0, len(samples), lambda i, acc: acc + w[i] * brightness(
-            xc + dx[i], yc + dy[i]), jnp.zeros(grid.shape, dtype))
-        return acc * (p * p)
     acc = jnp.zeros(grid.shape, dtype)
     for oy, wy in zip(offs, wts):
         for ox, wx in zip(offs, wts):
@@ -238,8 +224,7 @@ def disk_image(d: Disk, grid: Grid, *, order: int = 4, core: int = 5, strip: boo
     if d.arms is None and d.texture is None:
         return _plain_sersic_image(_disk_kw(d), grid, order, core, strip, dtype)
     mean = disk_modulation_mean(d)
-    return _sampled_image(lambda x, y: disk_unit_brightness(d, x, y, mean), grid, order, dtype,
-                          loop=True)
+    return _sampled_image(lambda x, y: disk_unit_brightness(d, x, y, mean), grid, order, dtype)
 
 
 def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
