@@ -40,7 +40,7 @@ def _feed(h, obj) -> bool:
     with np.printoptions(threshold=sys.maxsize):
         text = str(tree)
         for leaf in leaves:
-            if isinstance(leaf, (np.ndarray, jax.Array)) or np.isscalar(leaf) and hasattr(leaf, "dtype"):
+            if isinstance(leaf, (np.ndarray, np.generic, jax.Array)):
                 a = np.ascontiguousarray(np.asarray(leaf))
                 h.update(f"{a.dtype}{a.shape}".encode())
                 h.update(a.tobytes())

@@ -78,3 +78,43 @@ def test_an_argument_without_a_stable_repr_is_not_stored(tmp_path):
     out = programcache.call("opaque", lambda x, _o: 2 * x, jnp.ones(3), o, folder=tmp_path)
     assert np.array_equal(out, 2 * np.ones(3))
     assert not list(tmp_path.glob("*"))
+
+
+def _lensed_tiny():
+    from clumpylen_jax.lensing.analytic import SIS
+    from clumpylen_jax.model import Accuracy, Band
+    from clumpylen_jax.source import Clumps, Source
+
+    def f64(x):
+        return jnp.asarray(x, jnp.float64)
+
+    src = Source(clumps=Clumps(f64([[0.3, 0.0]]), f64([[100.0]]), f64([0.01]), f64([0.5]),
+                               f64([1.0]), f64([0.0])))
+    return src, [Band("X", 0.05, 1.0)], SIS(f64(1.0), f64([0.0, 0.0])), dict(
+        field_arcsec=((-1.5, 1.5), (-1.0, 1.0)), lens_pixel_arcsec=0.01,
+        accuracy=Accuracy(source_mode="grid"), source_pixel_arcsec=0.002)
+
+
+def test_built_model_is_read_back_bit_for_bit_and_keyed_on_inputs_and_version(monkeypatch,
+                                                                             tmp_path):
+    from clumpylen_jax import modelcache
+    from clumpylen_jax.model import build_model
+
+    src, bands, lens, kw = _lensed_tiny()
+    built = modelcache.build(build_model, src, bands, lens=lens, folder=tmp_path, **kw)
+
+    def refuse(*a, **k):
+        raise AssertionError("built again: the stored model was not used")
+
+    again = modelcache.build(refuse, src, bands, lens=lens, folder=tmp_path, **kw)
+    a, ta = jax.tree_util.tree_flatten(built)
+    b, tb = jax.tree_util.tree_flatten(again)
+    assert ta == tb
+    assert all(np.asarray(x).tobytes() == np.asarray(y).tobytes() for x, y in zip(a, b))
+    # another lens, or another package version: built anew, a file of its own
+    from clumpylen_jax.lensing.analytic import SIS
+    other = SIS(jnp.asarray(1.01), jnp.asarray([0.0, 0.0]))
+    modelcache.build(build_model, src, bands, lens=other, folder=tmp_path, **kw)
+    monkeypatch.setattr(programcache, "__version__", "0.0.0-other")
+    modelcache.build(build_model, src, bands, lens=lens, folder=tmp_path, **kw)
+    assert len(list(tmp_path.glob("model-*.pkl"))) == 3
