@@ -54,14 +54,21 @@ def fits_hashes(folder: Path) -> dict:
     return out
 
 
-def run_cli(scene, out: Path, cache: Path, extra=()):
-    """Run the command once; (wall s, CPU s of the child, summary dict, exit status)."""
+def run_cli(scene, out: Path, cache: Path, extra=(), code: Path | None = None):
+    """Run the command once; (wall s, CPU s of the child, summary dict, exit status).
+    code: another checkout's root whose clumpylen_jax runs instead (first on PYTHONPATH)."""
     env = dict(os.environ, CLUMPYLEN_CACHE=str(cache))
     env.pop("CLUMPYLEN_NO_CACHE", None)
+    cmd, cwd = [str(CLI)], None
+    if code is not None:      # run from its root: `python -c` puts the cwd first on sys.path
+        env["PYTHONPATH"] = str(code)
+        cwd = str(code)
+        cmd = [sys.executable, "-c", "import sys; from clumpylen_jax.cli import main; "
+               "sys.exit(main(sys.argv[1:]))"]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t = time.perf_counter()
-    proc = subprocess.run([str(CLI), "simulate", scene, "--out", str(out), *extra], env=env,
-                          capture_output=True, text=True)
+    proc = subprocess.run([*cmd, "simulate", scene, "--out", str(out), *extra], env=env,
+                          capture_output=True, text=True, cwd=cwd)
     wall = time.perf_counter() - t
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -88,25 +95,35 @@ def main(argv=None):
                     help="also run with --no-cache and compare the images bit for bit")
     ap.add_argument("--reference", type=Path, help="an earlier run's output folder to compare with")
     ap.add_argument("--keep", type=Path, help="keep the output folders here")
+    ap.add_argument("--baseline", type=Path,
+                    help="root of another checkout (e.g. `git archive` of the code before a "
+                         "change): its cold and warm runs are timed in the same repeat, "
+                         "interleaved with this code's (back to back on the same load)")
     ap.add_argument("--results", default="simulate_cli",
                     help="name of the result files under benchmarks/results/")
     args = ap.parse_args(argv)
 
     work = Path(tempfile.mkdtemp(prefix="bench_simulate_cli_"))
-    rows, hashes, tails = [], {}, {}
+    rows, hashes, tails, base_hashes = [], {}, {}, {}
     try:
         for rep in range(args.repeats):
             cache = work / f"cache{rep}"
             cache.mkdir()
             kinds = ["cold", "warm"] + (["no-cache"] if args.check and rep == 0 else [])
+            if args.baseline is not None:
+                (work / f"base-cache{rep}").mkdir()
+                kinds = ["base-cold", "cold", "base-warm", "warm"] + kinds[2:]
             for kind in kinds:
                 out = work / f"{kind}{rep}"
-                res = run_cli(args.scene, out, cache, ["--no-cache"] if kind == "no-cache" else [])
+                base = kind.startswith("base-")
+                res = run_cli(args.scene, out, work / f"base-cache{rep}" if base else cache,
+                              ["--no-cache"] if kind == "no-cache" else [],
+                              code=args.baseline if base else None)
                 if res[2] is None:
                     raise SystemExit(f"{kind} run failed with status {res[3]}")
                 wall, cpu, summary, _, stdout = res
                 rows.append(row_of(kind, rep, wall, cpu, summary))
-                hashes[f"{kind}{rep}"] = fits_hashes(out)
+                (base_hashes if base else hashes)[f"{kind}{rep}"] = fits_hashes(out)
                 tails[kind] = stdout.strip().splitlines()[-3:]
                 print(f"{kind} #{rep}: {wall:.1f} s wall, {cpu:.1f} s CPU, compile "
                       f"{rows[-1]['compile_s']:.1f} s + run {rows[-1]['run_s']:.1f} s", flush=True)
@@ -114,7 +131,7 @@ def main(argv=None):
         if args.keep:
             args.keep.mkdir(parents=True, exist_ok=True)
             for p in work.iterdir():
-                if p.name.startswith(("cold", "warm", "no-cache")):
+                if p.name.startswith(("cold", "warm", "no-cache", "base-")):
                     shutil.copytree(p, args.keep / p.name, dirs_exist_ok=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -131,14 +148,23 @@ def main(argv=None):
                                           or k.startswith("hr/")),
                "differing": sorted(k for k in first if ref_h.get(k) != first[k])}
     med = {}
-    for kind in ("cold", "warm"):
+    for kind in ("cold", "warm") + (("base-cold", "base-warm") if args.baseline else ()):
         walls = sorted(r["wall_s"] for r in rows if r["run"] == kind)
         med[kind] = walls[len(walls) // 2]
+    baseline = None
+    if args.baseline is not None:
+        bh = next(iter(base_hashes.values()))
+        baseline = {"code": str(args.baseline),
+                    "cold_speedup": med["base-cold"] / med["cold"],
+                    "warm_speedup": med["base-warm"] / med["warm"],
+                    "identical_between_its_runs": all(v == bh for v in base_hashes.values()),
+                    "differing_hdus": sorted(k for k in first if bh.get(k) != first[k])}
     payload = dict(machine=C.machine(), scene=args.scene, rows=rows,
                    median_wall_s=med, warm_over_cold=med["warm"] / med["cold"],
                    targets_s=TARGETS, met={k: med[k] < TARGETS[k] for k in TARGETS},
                    images_identical_between_runs=identical, reference=ref,
-                   cache_bytes=cache_bytes, fits_hdus=len(first), demo_tail=tails)
+                   cache_bytes=cache_bytes, fits_hdus=len(first), demo_tail=tails,
+                   baseline=baseline, load_average=os.getloadavg())
     C.write_json(args.results, payload)
     C.write_text(f"{args.results}.md", markdown(payload))
     print(markdown(payload))
@@ -160,6 +186,16 @@ def markdown(p):
              "", f"FITS data identical across runs ({p['fits_hdus']} HDUs): "
              + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in
                          p["images_identical_between_runs"].items())]
+    if p.get("baseline"):
+        b = p["baseline"]
+        lines += ["", f"Baseline code {b['code']}, timed in the same run: cold "
+                  f"{p['median_wall_s']['base-cold']:.1f} s → {p['median_wall_s']['cold']:.1f} s "
+                  f"({b['cold_speedup']:.2f}×), warm {p['median_wall_s']['base-warm']:.1f} s → "
+                  f"{p['median_wall_s']['warm']:.1f} s ({b['warm_speedup']:.2f}×). HDUs that "
+                  f"differ from the baseline's: {', '.join(b['differing_hdus']) or 'none'}"]
+    if p.get("load_average"):
+        lines += ["", "Load average at the end (1, 5, 15 min; 2 cores shared): "
+                  + ", ".join(f"{x:.1f}" for x in p["load_average"])]
     if p["reference"]:
         r = p["reference"]
         lines += ["", f"Against {r['folder']}: all HDUs identical: {r['all_hdus_identical']}; "

@@ -7,8 +7,16 @@ One folder: ``$CLUMPYLEN_CACHE`` if set, else ``~/.cache/clumpylen_jax``. Inside
   constant), the compile options, the jax/jaxlib versions and the device; a changed
   scene structure, code, JAX version or machine gives a new key, never a stale hit.
   Entries are not removed by clumpylen (delete the folder to reclaim the space).
+- ``programs/``: traced and lowered programs (`programcache`, `jax.export`): a second
+  run skips Python tracing and lowering as well as XLA compilation;
+- ``models/``: built scene models (`modelcache`): traced pixels, linearised clumps,
+  rebinning operators (~160 MB for the paper scene);
 - ``psf/``: diffraction PSFs (`psf.default_cache_dir`);
 - ``rays/``: traced lens-plane corners (`raycache`).
+
+``programs/`` and ``models/`` are keyed on the source of every module of the package,
+its version and the jax/jaxlib versions (besides their own inputs): a new release or
+any edit of the code starts them over.
 
 `cache_enabled` is the one switch: ``CLUMPYLEN_NO_CACHE=1`` (or ``clumpylen simulate
 --no-cache``) turns every one of them off for the process.

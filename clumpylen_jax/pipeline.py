@@ -359,11 +359,13 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         from .preflight import check_memory
         check_memory(scene, field_arcsec=field, n_clumps=0 if table is None else len(table))
     with progress.stage("model (ray tracing)" if lens is not None else "model"):
-        model = model_mod.build_model(
-            source, bands, lens=lens, field_arcsec=field,
-            lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
-            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype,
-            ray_cache=cache_root() / "rays" if cache_enabled() else None)
+        from . import modelcache
+        rays = cache_root() / "rays" if cache_enabled() else None
+        model = modelcache.build(
+            lambda *a, **k: model_mod.build_model(*a, ray_cache=rays, **k), source, bands,
+            lens=lens, folder=cache_root() / "models" if cache_enabled() else None,
+            field_arcsec=field, lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
+            source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
                     host_masses, progress.timings)
 
@@ -371,10 +373,17 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
 # ------------------------------------------------------------------ running and writing
 
 
+def _program(name: str, fun, *args):
+    """fun(*args) as one program (arrays traced, every other leaf static); its traced and
+    lowered form kept between runs in the cache folder (`programcache`) unless it is off."""
+    from . import programcache
+    folder = cache_root() / "programs" if cache_enabled() else None
+    return programcache.call(name, fun, *args, folder=folder)
+
+
 def _jit_call(model, method: str, *args):
     """Compile and call a SceneModel method (the model's arrays are traced, not hashed)."""
-    import equinox as eqx
-    return eqx.filter_jit(lambda m, *a: getattr(m, method)(*a))(model, *args)
+    return _program(f"SceneModel.{method}", lambda m, *a: getattr(m, method)(*a), model, *args)
 
 
 def _wcs_for(grid, scene):
@@ -563,7 +572,10 @@ def _write_hr(prep: Prepared, out: Path):
     if mono.clumps is not None and mono.clumps.count > 0:
         groups = render.stamp_groups(mono.clumps.re_arcsec, mono.clumps.n, sgrid.pixel_arcsec,
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
-    unl = np.asarray(jax.jit(lambda s: _source_plane_images(s, sgrid, prep.accuracy, groups))(mono))
+    # the stamp groups' indices as tuples: static (baked in as constants), as before
+    groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
+    unl = np.asarray(_program("source_plane_images", _source_plane_images, mono, sgrid,
+                              prep.accuracy, groups))
     lensed = None
     if model.lensed:
         lensed = np.asarray(_jit_call(model, 'lens_plane', mono))

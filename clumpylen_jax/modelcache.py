@@ -1,0 +1,81 @@
+"""Built models kept on disk between runs, keyed by the content of what builds them.
+
+`model.build_model` makes the static decisions of a scene (traced pixels, linearised
+clump images, host-core footprints, sparse rebinning operators, stored source tiles):
+seconds of NumPy for the paper scene on every run, although they depend only on the
+scene. `build` keeps the built `SceneModel` under ``<cache>/models/`` (a pickle of its
+arrays and static fields) and reads it back when every input is the same.
+
+The file name is a SHA-256 of: every argument of `build_model` (the source's and the
+lens's pytree structure and every leaf's dtype, shape and bytes; each band's fields and
+PSF array; field, pixel scales, accuracy knobs, dtype); the source of every module of the
+package and its version; the jax, jaxlib, numpy versions, backend and x64 switch
+(`programcache`). Any change gives a new name, so a stale model is never read; the model
+read back holds the built one's arrays bit for bit. An input whose repr is an object
+address cannot be keyed: such a model is built every time. Files are written atomically;
+they are read with pickle, so the cache folder must be as trusted as the code itself (it
+is the user's own, like JAX's compilation cache).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import pickle
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from .io import atomic_write
+from .programcache import _environment, _package_digest
+
+_LAYOUT = "1"
+
+
+def _feed(h, obj) -> bool:
+    """Hash obj's content into h: pytrees by structure and leaf bytes; False if unkeyable."""
+    leaves, tree = jax.tree_util.tree_flatten(obj)
+    with np.printoptions(threshold=sys.maxsize):
+        text = str(tree)
+        for leaf in leaves:
+            if isinstance(leaf, (np.ndarray, np.generic, jax.Array)):
+                a = np.ascontiguousarray(np.asarray(leaf))
+                h.update(f"{a.dtype}{a.shape}".encode())
+                h.update(a.tobytes())
+            else:
+                text += f"\0{type(leaf).__qualname__}:{leaf!r}"
+    if " at 0x" in text:
+        return False
+    h.update(text.encode())
+    return True
+
+
+def model_key(source, bands, lens, **settings) -> str | None:
+    """Hex SHA-256 of everything that sets a built model (module docstring), or None."""
+    h = hashlib.sha256(f"{_LAYOUT}\0{_environment()}\0".encode())
+    h.update(_package_digest())
+    band_fields = [dataclasses.asdict(b) for b in bands]
+    for part in (source, band_fields, lens, sorted(settings.items(), key=lambda kv: kv[0])):
+        if not _feed(h, part):
+            return None
+    return h.hexdigest()
+
+
+def build(build_fn, source, bands, *, lens=None, folder=None, **settings):
+    """build_fn(source, bands, lens=lens, **settings), read from / kept in `folder`
+    (None: built, nothing read or written)."""
+    key = None if folder is None else model_key(source, bands, lens, **settings)
+    if key is None:
+        return build_fn(source, bands, lens=lens, **settings)
+    path = Path(folder) / f"model-{key[:40]}.pkl"
+    if path.is_file():
+        try:
+            return pickle.loads(path.read_bytes())
+        except Exception:       # truncated or from other code: built again and replaced
+            pass
+    model = build_fn(source, bands, lens=lens, **settings)
+    with atomic_write(path, "wb") as fh:
+        pickle.dump(model, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    return model

@@ -1,0 +1,143 @@
+"""Traced and lowered programs kept on disk between runs (`jax.export`), keyed by content.
+
+JAX's persistent compilation cache (`cache.py`) skips XLA's compilation, but every
+process still traces the Python model to a jaxpr and lowers it to StableHLO before it
+can look there: for the paper scene that is most of a second run's time. `call` keeps
+the lowered program itself (a `jax.export.Exported`, serialised) under
+``<cache>/programs/``, so that a later process deserialises it and goes straight to the
+(cached) executable.
+
+What a file is keyed on (a SHA-256; any change gives a new name, so a stale program is
+never read): the program's name; the structure of its arguments (pytree definition,
+every array's shape and dtype; array *values* are inputs, not part of the program);
+every non-array argument (equinox static fields such as grids, stamp sides, accuracy
+knobs; numpy arrays by their bytes) -- these are baked into the program; the source of
+every module of the clumpylen_jax package and its version; the jax and jaxlib
+versions, the backend and device kind, and the x64 switch. A program whose key cannot
+be written down completely (an argument whose repr is an object address) is not
+cached: it is traced as usual. Files are written atomically and never removed by
+clumpylen (delete the folder to reclaim the space).
+
+The cached program and the freshly traced one are the same StableHLO, called the same
+way (`Exported.call`) whether the cache is on, off or cold: the images are bit for bit
+the same in each case.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import sys
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from . import __version__
+from .io import atomic_write
+
+_LAYOUT = "1"       # bump when the file layout or the key changes
+
+
+@functools.lru_cache(maxsize=1)
+def _package_digest() -> bytes:
+    """SHA-256 of every .py file of the package (names and contents)."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes())
+    return h.digest()
+
+
+def _environment() -> str:
+    import jaxlib
+
+    dev = jax.devices()[0]
+    return (f"{__version__} jax {jax.__version__} jaxlib {jaxlib.__version__} "
+            f"{jax.default_backend()} {dev.device_kind} x64={jax.config.read('jax_enable_x64')}")
+
+
+def _is_dynamic(x) -> bool:
+    """Arguments traced as inputs: JAX and numpy arrays (as `eqx.filter_jit` does)."""
+    return eqx.is_array(x)
+
+
+def program_key(name: str, dyn_leaves, dyn_tree, static) -> str | None:
+    """Hex SHA-256 naming a program (see the module docstring), or None when it cannot
+    be keyed completely."""
+    h = hashlib.sha256(f"{_LAYOUT}\0{name}\0{_environment()}\0".encode())
+    h.update(_package_digest())
+    h.update(str(dyn_tree).encode())
+    for leaf in dyn_leaves:
+        h.update(f"{leaf.dtype}{leaf.shape};".encode())
+    s_leaves, s_tree = jax.tree_util.tree_flatten(static)
+    with np.printoptions(threshold=sys.maxsize):
+        text = str(s_tree)
+        parts = [text]
+        for leaf in s_leaves:
+            if isinstance(leaf, np.ndarray):
+                h.update(f"{leaf.dtype}{leaf.shape}".encode())
+                h.update(np.ascontiguousarray(leaf).tobytes())
+                continue
+            parts.append(f"{type(leaf).__qualname__}:{leaf!r}")
+    blob = "\0".join(parts)
+    if " at 0x" in blob:      # an object known by its address: no stable key
+        return None
+    h.update(blob.encode())
+    return h.hexdigest()
+
+
+def _as_key_data(leaf):
+    """Typed PRNG keys travel as their raw data (export takes plain arrays)."""
+    if isinstance(leaf, jax.Array) and jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+        return jax.random.key_data(leaf), jax.random.key_impl(leaf)
+    return leaf, None
+
+
+def call(name: str, fun, *args, folder=None):
+    """`fun(*args)` compiled as one program, its traced form read from / written to `folder`.
+
+    name: identifies `fun` (part of the key: two functions must not share a name).
+    args: pytrees (equinox Modules included); arrays are the program's inputs, every
+    other leaf is static (baked in). folder None: traced here, nothing read or written.
+    """
+    dyn, static = eqx.partition(args, _is_dynamic)
+    leaves, tree = jax.tree_util.tree_flatten(dyn)
+    pairs = [_as_key_data(x) for x in leaves]
+    leaves = [jax.numpy.asarray(x) for x, _ in pairs]
+    impls = [impl for _, impl in pairs]
+
+    def flat(*xs):
+        xs = [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
+              for x, impl in zip(xs, impls)]
+        return fun(*eqx.combine(jax.tree_util.tree_unflatten(tree, xs), static))
+
+    specs = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+    key = program_key(name, leaves, tree, (static, [str(i) for i in impls]))
+    path = None if folder is None or key is None else Path(folder) / f"{name}-{key[:40]}.jaxexport"
+    exp = _load(path)
+    if exp is None:
+        exp = jax.export.export(jax.jit(flat))(*specs)
+        if path is not None:
+            _store(exp, path)
+    return exp.call(*leaves)
+
+
+def _store(exp, path):
+    try:
+        blob = exp.serialize()
+    except ImportError:     # flatbuffers missing: nothing kept, the run goes on
+        return
+    with atomic_write(path, "wb") as fh:
+        fh.write(blob)
+
+
+def _load(path):
+    """The Exported stored at path, or None (absent or unreadable: traced again)."""
+    if path is None or not path.is_file():
+        return None
+    try:
+        return jax.export.deserialize(bytearray(path.read_bytes()))
+    except Exception:       # a truncated or foreign file: trace again and replace it
+        return None

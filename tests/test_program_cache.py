@@ -1,0 +1,120 @@
+"""Traced programs kept between runs (`programcache`): read back, keyed, invalidated."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from clumpylen_jax import programcache
+
+
+class _Model(eqx.Module):
+    """A tiny model: arrays are inputs, `power` is baked into the program."""
+
+    scale: jax.Array
+    power: int = eqx.field(static=True)
+
+    def render(self, x, key):
+        noise = jax.random.normal(key, x.shape, x.dtype)
+        return (self.scale * x) ** self.power + 1e-3 * noise
+
+
+def _render(m, x, key):
+    return m.render(x, key)
+
+
+def _args(scale=1.5, power=2):
+    return _Model(jnp.asarray(scale), power), jnp.linspace(0.0, 1.0, 7), jax.random.key(3)
+
+
+def _refuse_tracing(monkeypatch):
+    def no_export(*a, **k):
+        raise AssertionError("traced again: the stored program was not used")
+    monkeypatch.setattr(jax.export, "export", no_export)
+
+
+def test_stored_program_is_read_back_and_gives_the_same_bits(monkeypatch, tmp_path):
+    direct = np.asarray(jax.jit(_render)(*_args()))
+    first = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
+    assert len(list(tmp_path.glob("tiny-*.jaxexport"))) == 1
+    uncached = np.asarray(programcache.call("tiny", _render, *_args(), folder=None))
+    with monkeypatch.context() as m:
+        _refuse_tracing(m)
+        again = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
+        # other array values: the same program, their own result
+        other = np.asarray(programcache.call("tiny", _render, *_args(scale=2.0),
+                                             folder=tmp_path))
+    assert first.tobytes() == again.tobytes() == uncached.tobytes() == direct.tobytes()
+    assert other.tobytes() == np.asarray(jax.jit(_render)(*_args(scale=2.0))).tobytes()
+    assert len(list(tmp_path.glob("*"))) == 1
+
+
+def test_key_changes_with_static_fields_shapes_and_versions(monkeypatch, tmp_path):
+    programcache.call("tiny", _render, *_args(), folder=tmp_path)
+    cubed = programcache.call("tiny", _render, *_args(power=3), folder=tmp_path)
+    assert np.allclose(cubed[1:], (1.5 * np.linspace(0, 1, 7)[1:]) ** 3, rtol=1e-3, atol=1e-2)
+    m, _, key = _args()
+    programcache.call("tiny", _render, m, jnp.ones(5), key, folder=tmp_path)   # other shape
+    assert len(list(tmp_path.glob("tiny-*.jaxexport"))) == 3
+    # another package version (or jax version, in the same string): a new key, old file unread
+    monkeypatch.setattr(programcache, "__version__", "0.0.0-other")
+    programcache.call("tiny", _render, *_args(), folder=tmp_path)
+    assert len(list(tmp_path.glob("tiny-*.jaxexport"))) == 4
+
+
+def test_unreadable_file_is_traced_again_and_replaced(tmp_path):
+    want = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
+    (path,) = tmp_path.glob("tiny-*.jaxexport")
+    path.write_bytes(b"not a program")
+    got = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
+    assert got.tobytes() == want.tobytes()
+    assert path.read_bytes() != b"not a program"
+
+
+def test_an_argument_without_a_stable_repr_is_not_stored(tmp_path):
+    class Opaque:            # repr is an address: no key can name it across processes
+        pass
+
+    o = Opaque()
+    out = programcache.call("opaque", lambda x, _o: 2 * x, jnp.ones(3), o, folder=tmp_path)
+    assert np.array_equal(out, 2 * np.ones(3))
+    assert not list(tmp_path.glob("*"))
+
+
+def _lensed_tiny():
+    from clumpylen_jax.lensing.analytic import SIS
+    from clumpylen_jax.model import Accuracy, Band
+    from clumpylen_jax.source import Clumps, Source
+
+    def f64(x):
+        return jnp.asarray(x, jnp.float64)
+
+    src = Source(clumps=Clumps(f64([[0.3, 0.0]]), f64([[100.0]]), f64([0.01]), f64([0.5]),
+                               f64([1.0]), f64([0.0])))
+    return src, [Band("X", 0.05, 1.0)], SIS(f64(1.0), f64([0.0, 0.0])), dict(
+        field_arcsec=((-1.5, 1.5), (-1.0, 1.0)), lens_pixel_arcsec=0.01,
+        accuracy=Accuracy(source_mode="grid"), source_pixel_arcsec=0.002)
+
+
+def test_built_model_is_read_back_bit_for_bit_and_keyed_on_inputs_and_version(monkeypatch,
+                                                                             tmp_path):
+    from clumpylen_jax import modelcache
+    from clumpylen_jax.model import build_model
+
+    src, bands, lens, kw = _lensed_tiny()
+    built = modelcache.build(build_model, src, bands, lens=lens, folder=tmp_path, **kw)
+
+    def refuse(*a, **k):
+        raise AssertionError("built again: the stored model was not used")
+
+    again = modelcache.build(refuse, src, bands, lens=lens, folder=tmp_path, **kw)
+    a, ta = jax.tree_util.tree_flatten(built)
+    b, tb = jax.tree_util.tree_flatten(again)
+    assert ta == tb
+    assert all(np.asarray(x).tobytes() == np.asarray(y).tobytes() for x, y in zip(a, b))
+    # another lens, or another package version: built anew, a file of its own
+    from clumpylen_jax.lensing.analytic import SIS
+    other = SIS(jnp.asarray(1.01), jnp.asarray([0.0, 0.0]))
+    modelcache.build(build_model, src, bands, lens=other, folder=tmp_path, **kw)
+    monkeypatch.setattr(programcache, "__version__", "0.0.0-other")
+    modelcache.build(build_model, src, bands, lens=lens, folder=tmp_path, **kw)
+    assert len(list(tmp_path.glob("model-*.pkl"))) == 3
