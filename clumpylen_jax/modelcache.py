@@ -32,6 +32,9 @@ from .io import atomic_write
 from .programcache import _environment, _package_digest
 
 _LAYOUT = "1"
+# A built paper scene is ~160 MB and every seed builds another: keep only the models of the
+# last few runs (most recently used first), so the folder cannot grow without bound.
+KEEP_MODELS = 4
 
 
 def _feed(h, obj) -> bool:
@@ -72,10 +75,24 @@ def build(build_fn, source, bands, *, lens=None, folder=None, **settings):
     path = Path(folder) / f"model-{key[:40]}.pkl"
     if path.is_file():
         try:
-            return pickle.loads(path.read_bytes())
+            model = pickle.loads(path.read_bytes())
+            path.touch()        # most recently used: kept longest by _evict
+            return model
         except Exception:       # truncated or from other code: built again and replaced
             pass
     model = build_fn(source, bands, lens=lens, **settings)
     with atomic_write(path, "wb") as fh:
         pickle.dump(model, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    _evict(Path(folder), KEEP_MODELS)
     return model
+
+
+def _evict(folder: Path, keep: int):
+    """Delete all but the `keep` most recently used model files of `folder`."""
+    def mtime(p):
+        try:
+            return p.stat().st_mtime
+        except OSError:         # removed meanwhile by another run
+            return 0.0
+    for old in sorted(folder.glob("model-*.pkl"), key=mtime, reverse=True)[keep:]:
+        old.unlink(missing_ok=True)

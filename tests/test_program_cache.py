@@ -118,3 +118,23 @@ def test_built_model_is_read_back_bit_for_bit_and_keyed_on_inputs_and_version(mo
     monkeypatch.setattr(programcache, "__version__", "0.0.0-other")
     modelcache.build(build_model, src, bands, lens=lens, folder=tmp_path, **kw)
     assert len(list(tmp_path.glob("model-*.pkl"))) == 3
+
+
+def test_model_folder_keeps_only_the_most_recently_used(monkeypatch, tmp_path):
+    from clumpylen_jax import modelcache
+    from clumpylen_jax.model import build_model
+
+    monkeypatch.setattr(modelcache, "KEEP_MODELS", 2)
+    src, bands, lens, kw = _lensed_tiny()
+    from clumpylen_jax.lensing.analytic import SIS
+    lenses = [SIS(jnp.asarray(1.0 + 0.01 * i), jnp.asarray([0.0, 0.0])) for i in range(3)]
+    modelcache.build(build_model, src, bands, lens=lenses[0], folder=tmp_path, **kw)
+    modelcache.build(build_model, src, bands, lens=lenses[1], folder=tmp_path, **kw)
+    first = modelcache.model_key(src, bands, lenses[0], **kw)[:40]
+    import os
+    import time
+    os.utime(tmp_path / f"model-{first}.pkl", (time.time() + 5, time.time() + 5))  # used last
+    modelcache.build(build_model, src, bands, lens=lenses[2], folder=tmp_path, **kw)
+    kept = sorted(p.name for p in tmp_path.glob("model-*.pkl"))
+    third = modelcache.model_key(src, bands, lenses[2], **kw)[:40]
+    assert kept == sorted([f"model-{first}.pkl", f"model-{third}.pkl"])
