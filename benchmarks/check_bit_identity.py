@@ -132,7 +132,7 @@ def _synthetic_cases():
     return cases
 
 
-def render_api(out: Path, scenes=API_SCENES):
+def render_api(out: Path, scenes=API_SCENES, cases=None):
     import jax
     import clumpylen_jax as cl
     from clumpylen_jax.model import build_model
@@ -143,7 +143,9 @@ def render_api(out: Path, scenes=API_SCENES):
         print("api", name, flush=True)
         prep = cl.prepare(cl.load_scene(name))
         np.savez(out / "api" / f"{name}.npz", **_model_outputs(prep.model, prep.source, key))
-    for name, source, bands, kw in _synthetic_cases():
+    by_name = {c[0]: c for c in _synthetic_cases()}
+    for name in (by_name if cases is None else cases):
+        _, source, bands, kw = by_name[name]
         print("api", name, flush=True)
         model = build_model(source, bands, **kw)
         np.savez(out / "api" / f"{name}.npz", **_model_outputs(model, source, key))
@@ -244,8 +246,10 @@ def main(argv=None):
         what = argv[2:] or ["cli", "api"]
         if "api" in what:
             render_api(out)
-        if "synthetic" in what:
-            render_api(out, scenes=())
+        for w in what:
+            if w.startswith("synthetic"):      # synthetic[:case,case,...]
+                render_api(out, scenes=(), cases=w.partition(":")[2].split(",") if ":" in w
+                           else None)
         if "cli" in what:
             render_cli(out)
         return 0

@@ -150,6 +150,8 @@ def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii, index=None):
     return pi[near], mi[near]
 
 
+# ~70 lines: one search in four steps (candidate pixels, triangle test, Newton on the
+# bilinear patch, merging duplicates) whose arrays are shared from step to step
 def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_pixels=0.5,
                  index=None):
     """Every image of each source-plane point inside the given lens-plane pixels.
