@@ -93,15 +93,17 @@ def _overlaps(src_edges, dst_edges):
     return lo, hi, src_edges[None, :-1], np.diff(src_edges)[None, :]
 
 
-def overlap_matrix(src_edges, dst_edges):
+def overlap_matrix(src_edges, dst_edges, src_pixel=None):
     """W[j, i] = fraction of source pixel i that lies in destination pixel j (1-D, numpy).
 
     W @ flux moves flux from the source bins to the destination bins; flux in
     source bins outside the destination range is dropped. Exact for any ratio
-    of pixel sizes (pixels are treated as uniformly filled).
+    of pixel sizes (pixels are treated as uniformly filled). src_pixel: the source
+    pixels' common width when known (the PSF resampling divides by it; None: each
+    pixel's width from its edges).
     """
     lo, hi, _, width = _overlaps(src_edges, dst_edges)
-    return np.clip(hi - lo, 0.0, None) / width
+    return np.clip(hi - lo, 0.0, None) / (width if src_pixel is None else src_pixel)
 
 
 def rebin_operators(src: Grid, dst: Grid):

@@ -48,7 +48,7 @@ def _sub_factor(scene, band) -> int:
 
 def _source_radius(scene) -> float:
     """Radius (arcsec) about the source centre holding its hosts' light and catalogue clumps."""
-    from .model import _radius_enclosing
+    from .profiles import sersic_radius_enclosing_np as _radius_enclosing
 
     src = scene.source
     frac = scene.render.accuracy.source_flux_fraction
@@ -104,7 +104,7 @@ def expected_clump_count(scene) -> int:
 def _stamp_side(scene) -> float:
     """Mean side (source-grid pixels) of a ray-traced clump's stamp: catalogue sizes, or the
     size relation at the mean CMF mass."""
-    from .model import _radius_enclosing
+    from .profiles import sersic_radius_enclosing_np as _radius_enclosing
 
     from .cosmology import arcsec_per_pc, make_cosmology
 

@@ -372,16 +372,12 @@ def _quiet_fits():
 
 
 def _overlap_matrix(n_in: int, pitch_in: float, n_out: int, pitch_out: float) -> np.ndarray:
-    """Fraction of input pixel i that falls in output pixel j, shape (n_out, n_in).
-
-    Both grids are centred on 0 (edges at (k − n/2)·pitch), so the array centres
-    coincide; pixels are treated as piecewise constant.
-    """
-    e_in = (np.arange(n_in + 1) - n_in / 2.0) * pitch_in
-    e_out = (np.arange(n_out + 1) - n_out / 2.0) * pitch_out
-    lo = np.maximum(e_out[:-1, None], e_in[None, :-1])
-    hi = np.minimum(e_out[1:, None], e_in[None, 1:])
-    return np.clip(hi - lo, 0.0, None) / pitch_in
+    """Fraction of input pixel i that falls in output pixel j, shape (n_out, n_in)
+    (`pixels.overlap_matrix` on two grids centred on 0: edges at (k − n/2)·pitch, so the
+    array centres coincide)."""
+    from .pixels import overlap_matrix
+    return overlap_matrix((np.arange(n_in + 1) - n_in / 2.0) * pitch_in,
+                          (np.arange(n_out + 1) - n_out / 2.0) * pitch_out, src_pixel=pitch_in)
 
 
 def resample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = None) -> np.ndarray:

@@ -114,11 +114,11 @@ SERSIC_VG = {key: value_and_grad_fn(m) for key, m in SERSIC_MODELS.items()}
 
 def test_sersic_templates_take_the_core_and_the_strip_paths():
     for (_, strip), m in SERSIC_MODELS.items():
-        assert m.layouts[0].host_strips == (strip, False)
+        assert m.hosts.strips[0] == (strip, False)
     off = build_model(_TEMPLATES[True], [Band("zero-sky", PIX, 1000.0, 0.0)],
                       field_arcsec=SERSIC_FIELD,
                       accuracy=Accuracy(source_order=3, exact_core=3, thin_strip=False))
-    assert off.layouts[0].host_strips == (False, False)
+    assert off.hosts.strips[0] == (False, False)
 
 
 def sersic_vg(n, re_pix, q, dtype):
@@ -231,7 +231,7 @@ def test_thin_unresolved_clumps_match_exact_pixels(dtype=jnp.float32):
     src = Source(clumps=cl).astype(dtype)
     m = build_model(src, [Band("zero-sky", PIX, 1000.0, 0.0)], field_arcsec=SERSIC_FIELD,
                     accuracy=_SERSIC_ACC, dtype=dtype)
-    assert {strip for _, strip in m.layouts[0].stamp_sides} == {False, True}
+    assert {strip for _, strip in m.clumps.sides[0]} == {False, True}
     (_, imgs), grads = value_and_grad_fn(m)(src)
     assert_finite_and_dtype(imgs, grads, dtype, "thin clumps")
     ref = sum(f * np.asarray(exact_pixels(re_pix * PIX, n, q, pa, *c))
@@ -328,7 +328,7 @@ def test_lensed_clumps_on_caustics_finite(params, key):
 
 
 # a host whose images, at build time, get exact sub-pixel footprints near its centre
-# (model._host_core_layout); hypothesis then moves it anywhere, onto the caustic too.
+# (lensing.tracing.host_core_footprints); hypothesis then moves it anywhere, onto the caustic too.
 # 0.031" detector pixels over 5 mas lens pixels: the second-order rebinning is used too
 _HOST_TEMPLATE = Source(bulge=Sersic(jnp.array([1.0]), jnp.array(0.005), jnp.array(4.0),
                                      jnp.array(0.8), jnp.array(0.3), jnp.array([0.3, 0.05])))
@@ -340,7 +340,7 @@ for _d in DTYPES:
                      accuracy=Accuracy(lens_subsampling=1, source_order=2, exact_core=3),
                      dtype=_d)
     assert _m.host_core_index is not None and _m.host_core_index.size > 100
-    assert all(m is not None for _, _, m in _m.rebin_ops[0])
+    assert all(m is not None for _, _, m in _m.plane.rebin_ops[0])
     HOST_VG[_d] = value_and_grad_fn(_m)
 HOST_CENTER = st.one_of(
     st.just((0.3, 0.05)),                                  # where the exact pixels are

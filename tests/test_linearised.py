@@ -9,8 +9,9 @@ import pytest
 import clumpylen_jax
 from clumpylen_jax import profiles
 from clumpylen_jax.lensing.analytic import SIS
-from clumpylen_jax.lensing.linearised import ClumpImages, lensed_clumps, point_images
-from clumpylen_jax.model import Accuracy, Band, build_model, trace_corners
+from clumpylen_jax.lensing.linearised import ClumpImages, lensed_clumps
+from clumpylen_jax.lensing.tracing import point_images, trace_corners
+from clumpylen_jax.model import Accuracy, Band, build_model
 from clumpylen_jax.pixels import Grid
 from clumpylen_jax.source import Clumps, Source
 

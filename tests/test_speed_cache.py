@@ -11,7 +11,7 @@ import pytest
 from clumpylen_jax import cache, raycache
 from clumpylen_jax.cli import main
 from clumpylen_jax.lensing.analytic import SIS
-from clumpylen_jax.model import trace_corners
+from clumpylen_jax.lensing.tracing import trace_corners
 from clumpylen_jax.pixels import Grid
 from clumpylen_jax.timing import StageClock, _union_length
 

@@ -135,7 +135,7 @@ def psf_sigma_pixels(model) -> np.ndarray:
             continue
         sub = lay.grid.subdivided(lay.oversampling)
         ky, kx = lay.psf_shape
-        ker = np.fft.irfft2(np.asarray(model.psf_fts[k]), s=fft_shape(sub.shape, (ky, kx)))[:ky, :kx]
+        ker = np.fft.irfft2(np.asarray(lay.psf_ft), s=fft_shape(sub.shape, (ky, kx)))[:ky, :kx]
         ker = np.clip(ker, 0.0, None)
         yy, xx = np.mgrid[:ky, :kx]
         tot = ker.sum()

@@ -1,4 +1,8 @@
-"""Deflection fields sampled on a regular grid, with differentiable bilinear interpolation.
+"""Deflection fields sampled on a regular grid, and every bilinear interpolation of the lens
+plane: deflection maps and the tiled source-plane grid (`bilinear_neighbours` holds the
+clamping rule, `bilinear_gather` the weights), and the traced corners inside a lens-plane
+pixel (`bilinear_patch`, `bilinear_quad`, read by `tracing.py`). Change the lens
+interpolation here.
 
 Rays outside the map (the rule, documented once here): the deflection is that of
 the nearest map pixel centre on the edge ("edge clamping"), so every ray gets a
@@ -48,6 +52,29 @@ def bilinear_gather(get, x_pix, y_pix, ny: int, nx: int):
     fy = (y - j0)[..., None]
     return (get(j0, i0) * (1 - fx) * (1 - fy) + get(j0, i1) * fx * (1 - fy)
             + get(j1, i0) * (1 - fx) * fy + get(j1, i1) * fx * fy)
+
+
+def bilinear_patch(corner, r, c, fx, fy, *, derivatives=True):
+    """Value and (unless derivatives=False) derivatives per pixel along x and y of the
+    bilinear interpolation of corner values [ny + 1, nx + 1] inside pixels (r, c) at
+    fractions (fx, fy) ∈ [0, 1]."""
+    v00 = corner[r, c]
+    v01 = corner[r, c + 1]
+    v10 = corner[r + 1, c]
+    v11 = corner[r + 1, c + 1]
+    val = v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy) + v10 * (1 - fx) * fy + v11 * fx * fy
+    if not derivatives:
+        return val
+    dfx = (v01 - v00) * (1 - fy) + (v11 - v10) * fy
+    dfy = (v10 - v00) * (1 - fx) + (v11 - v01) * fx
+    return val, dfx, dfy
+
+
+def bilinear_quad(ll, lr, ur, ul, fx, fy):
+    """Bilinear interpolation between four corner values (lower left, lower right, upper
+    right, upper left) at fractions (fx, fy) ∈ [0, 1] (the sub-pixel corners of a host core,
+    `tracing.host_core_footprints`; its own order of terms, kept for bit-identical sums)."""
+    return ll * (1 - fx) * (1 - fy) + lr * fx * (1 - fy) + ur * fx * fy + ul * (1 - fx) * fy
 
 
 def bilinear_interpolate_channels(image, x_pix, y_pix):

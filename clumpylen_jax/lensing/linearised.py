@@ -21,11 +21,11 @@ from typing import Optional
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..pixels import Grid
-from ..profiles import safe_atan2, safe_sqrt
+from ..profiles import safe_atan2, safe_sqrt, sersic_radius_enclosing_np
 from ..source import Clumps
+from .tracing import map_points, point_images
 
 
 class ClumpImages(eqx.Module):
@@ -100,183 +100,6 @@ def lensed_clumps(clumps: Clumps, images: ClumpImages) -> Clumps:
 # ---------------------------------------------------------------- build time (numpy)
 
 
-def bilinear_patch(corner, r, c, fx, fy, *, derivatives=True):
-    """Value and (unless derivatives=False) derivatives per pixel along x and y of the
-    bilinear interpolation of corner values [ny + 1, nx + 1] inside pixels (r, c) at
-    fractions (fx, fy) ∈ [0, 1]."""
-    v00 = corner[r, c]
-    v01 = corner[r, c + 1]
-    v10 = corner[r + 1, c]
-    v11 = corner[r + 1, c + 1]
-    val = v00 * (1 - fx) * (1 - fy) + v01 * fx * (1 - fy) + v10 * (1 - fx) * fy + v11 * fx * fy
-    if not derivatives:
-        return val
-    dfx = (v01 - v00) * (1 - fy) + (v11 - v10) * fy
-    dfy = (v10 - v00) * (1 - fx) + (v11 - v01) * fx
-    return val, dfx, dfy
-
-
-def map_points(corner_b1, corner_b2, grid: Grid, t1, t2):
-    """β and A = ∂β/∂θ at lens-plane points (arcsec) from the corner grid's bilinear mapping.
-
-    Returns (b1, b2, A [.., 2, 2], inside); points outside the grid are clamped and
-    flagged False in `inside`.
-    """
-    h = grid.pixel_arcsec
-    x = (np.asarray(t1, float) - (grid.x0_arcsec - 0.5 * h)) / h
-    y = (np.asarray(t2, float) - (grid.y0_arcsec - 0.5 * h)) / h
-    inside = (x >= 0) & (x <= grid.nx) & (y >= 0) & (y <= grid.ny)
-    c = np.clip(np.floor(x).astype(int), 0, grid.nx - 1)
-    r = np.clip(np.floor(y).astype(int), 0, grid.ny - 1)
-    fx = np.clip(x - c, 0.0, 1.0)
-    fy = np.clip(y - r, 0.0, 1.0)
-    b1, d1x, d1y = bilinear_patch(corner_b1, r, c, fx, fy)
-    b2, d2x, d2y = bilinear_patch(corner_b2, r, c, fx, fy)
-    A = np.stack([np.stack([d1x, d1y], -1), np.stack([d2x, d2y], -1)], -2) / h
-    return b1, b2, A, inside
-
-
-def _pixel_corners(corner_b1, corner_b2, rows, cols):
-    """β1, β2 at the corners 00, 01, 10, 11 of lens-plane pixels (rows, cols): [M, 4] each."""
-    q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
-    return (np.stack([corner_b1[a, b] for a, b in q], -1),
-            np.stack([corner_b2[a, b] for a, b in q], -1))
-
-
-def pixel_footprints(corner_b1, corner_b2, rows=None, cols=None):
-    """Centre (mean of the corners' β) and reach (largest corner distance from it) of the
-    source-plane footprints of lens-plane pixels (rows, cols): three [M] arrays; without
-    rows and cols, of every pixel of the grid: three [ny, nx] arrays."""
-    if rows is None:
-        v1 = (corner_b1[:-1, :-1], corner_b1[:-1, 1:], corner_b1[1:, :-1], corner_b1[1:, 1:])
-        v2 = (corner_b2[:-1, :-1], corner_b2[:-1, 1:], corner_b2[1:, :-1], corner_b2[1:, 1:])
-    else:
-        q = [(rows, cols), (rows, cols + 1), (rows + 1, cols), (rows + 1, cols + 1)]
-        v1 = tuple(corner_b1[r, c] for r, c in q)
-        v2 = tuple(corner_b2[r, c] for r, c in q)
-    m1 = 0.25 * (v1[0] + v1[1] + v1[2] + v1[3])
-    m2 = 0.25 * (v2[0] + v2[1] + v2[2] + v2[3])
-    reach2 = np.zeros_like(m1)
-    for a1, a2 in zip(v1, v2):
-        np.maximum(reach2, (a1 - m1) ** 2 + (a2 - m2) ** 2, out=reach2)
-    return m1, m2, np.sqrt(reach2)
-
-
-class FootprintIndex:
-    """Source-plane footprints (centres m1, m2 and reaches, [M] each, arcsec) of lens-plane
-    pixels, with one KD tree per octave of reach, so that a few huge footprints (near a
-    lens centre) do not widen every query. Built once, queried by `pixels_near`."""
-
-    def __init__(self, m1, m2, reach):
-        self.m1, self.m2, self.reach = m1, m2, reach
-        level = np.floor(np.log2(np.maximum(reach, 1e-300))).astype(int)
-        self.levels = []
-        for lv in np.unique(level):
-            members = np.nonzero(level == lv)[0]
-            self.levels.append((members, cKDTree(np.stack([m1[members], m2[members]], -1)),
-                                reach[members].max()))
-
-
-def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii, index=None):
-    """Pairs (disc index [L], pixel index [L]) of source-plane discs (centers [P, 2], radii [P],
-    arcsec) and lens-plane pixels (rows, cols) whose footprint comes within the disc.
-    index: the pixels' `FootprintIndex`, when already made."""
-    if index is None:
-        index = FootprintIndex(*pixel_footprints(corner_b1, corner_b2, np.asarray(rows),
-                                                 np.asarray(cols)))
-    m1, m2, reach = index.m1, index.m2, index.reach
-    centers = np.asarray(centers, float).reshape(-1, 2)
-    radii = np.asarray(radii, float)
-    none = (np.zeros(0, int), np.zeros(0, int))
-    if m1.size == 0 or centers.shape[0] == 0:
-        return none
-    pis, mis = [], []
-    for members, tree, widest in index.levels:
-        cand = tree.query_ball_point(centers, r=radii + 1.01 * widest + 1e-12)
-        pi = np.repeat(np.arange(centers.shape[0]), [len(c) for c in cand])
-        if pi.size:
-            pis.append(pi)
-            mis.append(members[np.concatenate([np.asarray(c, int) for c in cand])])
-    if not pis:
-        return none
-    pi, mi = np.concatenate(pis), np.concatenate(mis)
-    near = (np.hypot(centers[pi, 0] - m1[mi], centers[pi, 1] - m2[mi])
-            <= radii[pi] + 1.01 * reach[mi] + 1e-12)
-    return pi[near], mi[near]
-
-
-def point_images(corner_b1, corner_b2, grid: Grid, rows, cols, points, *, merge_pixels=0.5,
-                 index=None):
-    """Every image of each source-plane point inside the given lens-plane pixels.
-
-    corner_b1/2: β at the grid's pixel corners ([ny + 1, nx + 1]); rows, cols: the pixels
-    searched; points: [P, 2] β (arcsec). Each pixel is split into two triangles whose
-    images in the source plane are tested for each point (triangle mapping), and the
-    hit is then solved exactly on the pixel's bilinear mapping (Newton, which the
-    ray tracer's rays follow too). Returns numpy (point_index [K], theta [K, 2],
-    A [K, 2, 2]); images of a point closer than `merge_pixels` are merged.
-    """
-    points = np.asarray(points, float).reshape(-1, 2)
-    h = grid.pixel_arcsec
-    rows = np.asarray(rows)
-    cols = np.asarray(cols)
-    pi, mi = pixels_near(corner_b1, corner_b2, rows, cols, points, np.zeros(points.shape[0]),
-                         index)
-    if pi.size == 0:
-        return np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2, 2))
-    # corners of the candidate pixels only, indexed like them
-    cand, at = np.unique(mi, return_inverse=True)
-    v1, v2 = _pixel_corners(corner_b1, corner_b2, rows[cand], cols[cand])
-    v1, v2 = v1[at], v2[at]
-    # the two triangles (00, 01, 11) and (00, 11, 10) in pixel units (fx, fy)
-    found_p, found_m, found_f = [], [], []
-    for tri, pts in (((0, 1, 3), ((0, 0), (1, 0), (1, 1))), ((0, 3, 2), ((0, 0), (1, 1), (0, 1)))):
-        a, b, c = tri
-        e1 = np.stack([v1[:, b] - v1[:, a], v2[:, b] - v2[:, a]], -1)
-        e2 = np.stack([v1[:, c] - v1[:, a], v2[:, c] - v2[:, a]], -1)
-        d = np.stack([points[pi, 0] - v1[:, a], points[pi, 1] - v2[:, a]], -1)
-        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-        ok = np.abs(det) > 1e-30
-        det = np.where(ok, det, 1.0)
-        l1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
-        l2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
-        tol = -1e-9
-        hit = ok & (l1 >= tol) & (l2 >= tol) & (l1 + l2 <= 1 - tol)
-        p0, p1, p2 = (np.asarray(p, float) for p in pts)
-        f = p0[None] + l1[:, None] * (p1 - p0)[None] + l2[:, None] * (p2 - p0)[None]
-        found_p.append(pi[hit])
-        found_m.append(mi[hit])
-        found_f.append(f[hit])
-    pidx = np.concatenate(found_p)
-    midx = np.concatenate(found_m)
-    f = np.concatenate(found_f)
-    r, c = rows[midx], cols[midx]
-    fx, fy = f[:, 0].copy(), f[:, 1].copy()
-    # Newton on the bilinear patch (the triangle solution is the first guess)
-    for _ in range(8):
-        b1, d1x, d1y = bilinear_patch(corner_b1, r, c, fx, fy)
-        b2, d2x, d2y = bilinear_patch(corner_b2, r, c, fx, fy)
-        r1 = points[pidx, 0] - b1
-        r2 = points[pidx, 1] - b2
-        det = d1x * d2y - d1y * d2x
-        det = np.where(np.abs(det) > 1e-300, det, 1e-300)
-        fx = np.clip(fx + (d2y * r1 - d1y * r2) / det, 0.0, 1.0)
-        fy = np.clip(fy + (-d2x * r1 + d1x * r2) / det, 0.0, 1.0)
-    theta = np.stack([grid.x0_arcsec + (c + fx - 0.5) * h,
-                      grid.y0_arcsec + (r + fy - 0.5) * h], -1)
-    _, _, A, _ = map_points(corner_b1, corner_b2, grid, theta[:, 0], theta[:, 1])
-    # merge duplicates (a point on a shared edge is found in both neighbours)
-    order = np.lexsort((theta[:, 1], theta[:, 0], pidx))
-    pidx, theta, A = pidx[order], theta[order], A[order]
-    keep = np.ones(pidx.size, bool)
-    first = np.searchsorted(pidx, pidx)       # sorted by point: its images are contiguous
-    for k in np.nonzero(first < np.arange(pidx.size))[0]:
-        prev = slice(first[k], k)
-        if np.any(keep[prev] & (np.hypot(*(theta[prev] - theta[k]).T) < merge_pixels * h)):
-            keep[k] = False
-    return pidx[keep], theta[keep], A[keep]
-
-
 def _det_inverse(A):
     """(det [K], inverse [K, 2, 2]) of 2 × 2 matrices A [K, 2, 2] (numpy)."""
     det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
@@ -338,3 +161,74 @@ def linearisation_error(corner_b1, corner_b2, grid: Grid, theta, A, beta0, radiu
                      b2 - beta0[:, None, 1] - dbeta[..., 1]], -1)
     out = np.linalg.norm(np.einsum("kab,ksb->ksa", Ainv, miss), axis=-1).max(-1)
     return np.where(inside.all(-1) & np.isfinite(out), out, np.inf)
+
+
+# ---------------------------------------------------------------- which clumps (build time)
+
+
+def linearise_clumps(clumps, corner_b1, corner_b2, hr: Grid, rows, cols, footprint_index,
+                     stamp_flux_fraction: float, tolerance_arcsec: float, dtype):
+    """Which clumps the local linear lens map renders well, and their images.
+
+    A clump is linearised when every image of its centre has a linearisation error
+    (`linearisation_error` on its 99 %-light circle) below `tolerance_arcsec` and 8 points
+    on the rim of its stamp have as many images as the centre (no caustic crosses it).
+    Returns (mask [N], ClumpImages of the linearised clumps).
+    """
+    cc = np.asarray(clumps.center_arcsec, float)
+    re = np.asarray(clumps.re_arcsec, float)
+    n = np.asarray(clumps.n, float)
+    N = re.size
+    r99 = sersic_radius_enclosing_np(0.99, re, n)
+    r_stamp = sersic_radius_enclosing_np(stamp_flux_fraction, re, n)
+    ang = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+    rim = cc[:, None, :] + r_stamp[:, None, None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+    pidx, theta, A = point_images(corner_b1, corner_b2, hr, rows, cols,
+                                  np.concatenate([cc, rim.reshape(-1, 2)]),
+                                  index=footprint_index)
+    counts = np.bincount(pidx, minlength=9 * N)
+    ok = np.all(counts[N:].reshape(N, 8) == counts[:N, None], axis=1)
+    centre = pidx < N
+    ci, theta, A = pidx[centre], theta[centre], A[centre]
+    err = linearisation_error(corner_b1, corner_b2, hr, theta, A, cc[ci], r99[ci])
+    bad = np.zeros(N, bool)
+    np.logical_or.at(bad, ci, ~(err < tolerance_arcsec))
+    ok &= ~bad
+    keep = ok[ci]
+    ci, theta, A = ci[keep], theta[keep], A[keep]
+    samples, weights = _light_samples(cc, re, n, np.asarray(clumps.q, float),
+                                      np.asarray(clumps.pa_rad, float), r_stamp)
+    scale = light_averaged_flux_scale(corner_b1, corner_b2, hr, theta, A, cc[ci],
+                                      samples[ci], weights[ci])
+    images = ClumpImages(clump_index=jnp.asarray(ci), theta0=jnp.asarray(theta, dtype),
+                         beta0=jnp.asarray(cc[ci], dtype), jacobian=jnp.asarray(A, dtype),
+                         flux_scale=jnp.asarray(scale, dtype))
+    return ok, images
+
+
+def _light_samples(center, re, n, q, pa, r_max, radial: int = 10, angular: int = 16):
+    """Points β ([N, radial·angular, 2], arcsec) and weights ([N, radial·angular], summing
+    to 1) that integrate a smooth function over each clump's light.
+
+    Radially Gauss–Laguerre in x = b (r/R_e)^{1/n}, where the light is x^{2n−1} e^{−x} dx
+    (generalised Laguerre weight), points beyond r_max [N] (the stamp's radius) pulled in
+    to it; in the elliptical angle (light is uniform in it) equal steps.
+    """
+    from scipy.special import gammaincinv, roots_genlaguerre
+    N = re.size
+    r = np.empty((N, radial))
+    w = np.empty((N, radial))
+    for nv in np.unique(n):
+        at = n == nv
+        x, wx = roots_genlaguerre(radial, 2 * nv - 1)
+        b = gammaincinv(2 * nv, 0.5)
+        r[at] = np.minimum(re[at, None] * (x / b) ** nv, r_max[at, None])
+        w[at] = wx / wx.sum()
+    phi = (np.arange(angular) + 0.5) * (2 * np.pi / angular)
+    u = r[:, :, None] * np.cos(phi)
+    v = (q[:, None, None] * r[:, :, None]) * np.sin(phi)
+    c, s = np.cos(pa)[:, None, None], np.sin(pa)[:, None, None]
+    x = center[:, 0, None, None] + c * u - s * v
+    y = center[:, 1, None, None] + s * u + c * v
+    weights = np.broadcast_to(w[:, :, None] / angular, u.shape).reshape(N, -1)
+    return np.stack([x, y], -1).reshape(N, -1, 2), weights

@@ -1,0 +1,87 @@
+"""The interface every renderer follows, and the light it hands to the detector bands.
+
+A renderer is a final equinox Module that draws some of a source's components (the host,
+the clumps) in one way (unlensed, through the traced lens plane, linearised, ...). It does
+its build-time precomputation in its own `build` classmethod; `build_model` chooses which
+renderers a scene needs (`source_mode`, lens or not) and `SceneModel` only adds up what
+they return, band by band, before each `DetectorBand` observes it.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ..source import Source
+
+
+class Light:
+    """A renderer's light on one sub-grid, for every band (not a pytree: lives inside a trace)."""
+
+    def add_band(self, image, k: int):
+        """image + band k's light ([ny, nx] each)."""
+        raise NotImplementedError
+
+
+class BandStack(Light):
+    """Light held per band: images [ny, nx, B], added in turn."""
+
+    def __init__(self, images, dtype=None):
+        self.images = images
+        self.dtype = images[0].dtype if dtype is None else dtype
+
+    def add_band(self, image, k):
+        for img in self.images:
+            image = image + img[..., k]
+        return image
+
+
+class HostStack(Light):
+    """Achromatic components: units [ny, nx, C] per unit flux, times fluxes [C, B]."""
+
+    def __init__(self, units, fluxes):
+        self.units, self.fluxes = units, fluxes
+        self.dtype = units.dtype
+
+    def add_band(self, image, k):
+        return image + self.units @ self.fluxes[:, k]
+
+
+class UnitImages(Light):
+    """Achromatic components one by one: [(flux [B], unit image [ny, nx])]."""
+
+    def __init__(self, parts):
+        self.parts = parts
+        self.dtype = jnp.result_type(*[unit for _, unit in parts])
+
+    def add_band(self, image, k):
+        for flux, unit in self.parts:
+            image = image + flux[k] * unit
+        return image
+
+
+class Renderer(eqx.Module):
+    """Draws some of a source's components on the model's sub-grids."""
+
+    @abc.abstractmethod
+    def subgrid_light(self, source: Source, subgrids: dict) -> dict:
+        """{sub-grid: Light} for `subgrids` ({sub-grid: index of its first band}); sub-grids
+        where the renderer draws nothing are left out."""
+
+
+def n_bands(source: Source) -> int:
+    for comp in (source.bulge, source.disk.sersic if source.disk is not None else None):
+        if comp is not None:
+            return comp.flux.shape[0]
+    return source.clumps.flux.shape[1]
+
+
+def first_band_per_subgrid(layouts) -> dict:
+    """{sub-grid: index of its first band}: bands on the same sub-grid share every image
+    made on it."""
+    first = {}
+    for k, lay in enumerate(layouts):
+        first.setdefault(lay.sub_grid, k)
+    return first
