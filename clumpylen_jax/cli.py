@@ -159,12 +159,9 @@ def _read_fit_image(band: str, path: str):
     except Exception as exc:
         raise ConfigError(f"--image {band}", path, f"a readable FITS file ({exc})") from None
     with hdul:
-        names = [h.name for h in hdul]
-        idx = names.index("SCI") if "SCI" in names else next(
-            (i for i, h in enumerate(hdul) if h.data is not None and np.ndim(h.data) == 2), None)
-        if idx is None or np.ndim(hdul[idx].data) != 2:
-            raise ConfigError(f"--image {band}", path, f"a FITS file with a 2-D image (HDUs: {names})")
-        var = np.asarray(hdul["VARIANCE"].data, float) if "VARIANCE" in names else None
+        from .observations.read import find_image_hdu
+        idx = find_image_hdu(hdul, path, f"--image {band}")
+        var = np.asarray(hdul["VARIANCE"].data, float) if "VARIANCE" in [h.name for h in hdul] else None
         return np.asarray(hdul[idx].data, float), var
 
 

@@ -60,8 +60,8 @@ def _clump_n(scene):
 def write_auto_fit(fit, images, variances, out_dir) -> list:
     """fit.ecsv, fit_steps.json and residuals_<band>.fits in out_dir."""
     from ..io import write_catalog, write_json
-    from .capacity import masked
     from .likelihood import make_data
+    from .params import masked_clumps
     from .run import _write_residuals
 
     out = Path(out_dir)
