@@ -100,7 +100,6 @@ def test_three_clumps_found_from_a_generic_start():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason='never completed within 25 min on the shared machine; not shown to pass (issue 18 open)', strict=False)
 def test_start_size_does_not_change_the_optimum():
     """Regression: a clump started at R_e = 1 px that grows to 5 px lands where one started at
     5 px does (its stamp is sized for the prior range, not for the start)."""
