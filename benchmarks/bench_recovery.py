@@ -228,12 +228,12 @@ def _fmt(v):
     return "" if v is None else f"{v:.2f}"
 
 
-def _write(results, kinds, n_seeds, wall_s):
+def _write(results, kinds, n_seeds, wall_s, name="recovery"):
     """recovery.{json,md} from the seeds done so far (rewritten after each seed)."""
     summary = {k: summarise([r for r in results if r["kind"] == k]) for k in kinds
                if any(r["kind"] == k for r in results)}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "recovery.json").write_text(json.dumps(
+    (RESULTS / f"{name}.json").write_text(json.dumps(
         {"machine": machine(), "results": results, "summary": summary}, indent=2))
     done = {k: sum(r["kind"] == k for r in results) for k in kinds}
     lines = ["# bench_recovery: clumpylen simulate -> clumpylen fit, images only", "",
@@ -259,7 +259,7 @@ def _write(results, kinds, n_seeds, wall_s):
                   f"{_fmt(s['converged'])}; "
                   f"false clumps per scene {s['false_per_scene']:.2f} "
                   f"(S/N > 10: {s['false_snr10_per_scene']:.2f}, max {s['max_false_snr10']})", ""]
-    (RESULTS / "recovery.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
     return lines
 
 
@@ -270,6 +270,7 @@ def main():
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--scenes", default="sis,unlensed")
+    ap.add_argument("--name", default="recovery", help="results/<name>.{json,md}")
     args = ap.parse_args()
     kinds = args.scenes.split(",")
     results = []
@@ -284,7 +285,7 @@ def main():
                 print(kind, seed, f"fit {r['fit_s']:.0f} s (load {r['load']:.1f}), found {r['n_fit']}, "
                       f"false {r['false']} (S/N>10: {r['false_snr10']}), recovered "
                       f"{sum(c['recovered'] for c in r['clumps'])}/{len(r['clumps'])}", flush=True)
-                lines = _write(results, kinds, args.seeds, time.perf_counter() - t_all)
+                lines = _write(results, kinds, args.seeds, time.perf_counter() - t_all, args.name)
     print("\n".join(lines))
 
 
