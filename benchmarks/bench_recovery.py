@@ -213,7 +213,7 @@ def summarise(results):
     out["snr_gt10_recovered"] = float(np.mean([c["recovered"] for c in clumps if c["snr"] > 10])) \
         if any(c["snr"] > 10 for c in clumps) else None
     for p in ("flux", "re", "re_circ", "beta1", "beta2"):
-        v = np.array([c[f"pull_{p}"] for c in hi])
+        v = np.array([c[f"pull_{p}"] for c in hi if f"pull_{p}" in c])   # NaN counts as > 3
         out[f"pull_{p}_within3"] = float(np.mean(np.abs(v) < 3)) if v.size else None
         out[f"pull_{p}_median"] = float(np.median(v)) if v.size else None
     out["converged"] = float(np.mean([c["flag"] == 0 for c in clumps if c["recovered"]])) \
