@@ -81,11 +81,11 @@ def capacity_costs(cap, data, var, steps, joint=True):
 
     def local(max_steps):
         return capacity.solve_local_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),
-                                          jnp.asarray(idx), jnp.asarray(active), 0.0, 0.0, max_steps)
+                                          jnp.asarray(idx), jnp.asarray(active), 0.0, max_steps)
 
     def joint_fit(max_steps):
         return capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),
-                                    jnp.asarray(active), 0.0, 0.0, max_steps)
+                                    jnp.asarray(active), 0.0, max_steps)
 
     fits = [("local", local)] + ([("joint", joint_fit)] if joint else [])
     for name, f in fits:

@@ -1,5 +1,5 @@
 """The optimiser of observation fits, measured (issue 17, item 4): this package's
-one-Jacobian-per-step Levenberg–Marquardt (observations/lm.py) against optimistix's
+one-Jacobian-per-step Levenberg–Marquardt (inference/lm.py) against optimistix's
 Levenberg–Marquardt and BFGS, on the same mock fits from the same starts.
 
     .venv/bin/python benchmarks/bench_optimizers.py [--starts 3] [--solvers lm,optimistix-lm]

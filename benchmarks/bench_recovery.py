@@ -169,12 +169,19 @@ def run_one(kind, seed, work: Path):
     m = _match(true, fit, radius)
     rows = []
     for i, j in enumerate(m):
+        q = float(true["q"][i])
         r = {"snr": float(true["snr"][i]), "flux": float(true["flux"][i]),
-             "re_arcsec": float(true["re_arcsec"][i]), "recovered": bool(j >= 0)}
+             "re_arcsec": float(true["re_arcsec"][i]), "q": q, "recovered": bool(j >= 0)}
         if j >= 0:
             f = fit[j]
-            r.update(pull_flux=float((f["flux_F200W"] - r["flux"]) / f["flux_F200W_err"]),
+            # the fit's clumps are round (AutoOptions.fit_shape False): its R_e estimates the
+            # circularised R_e·√q of an elliptical clump; both pulls are reported
+            r.update(fit_flux=float(f["flux_F200W"]), fit_flux_err=float(f["flux_F200W_err"]),
+                     fit_re_arcsec=float(f["re_arcsec"]), fit_re_err=float(f["re_arcsec_err"]),
+                     pull_flux=float((f["flux_F200W"] - r["flux"]) / f["flux_F200W_err"]),
                      pull_re=float((f["re_arcsec"] - r["re_arcsec"]) / f["re_arcsec_err"]),
+                     pull_re_circ=float((f["re_arcsec"] - r["re_arcsec"] * np.sqrt(q))
+                                        / f["re_arcsec_err"]),
                      pull_beta1=float((f["beta1_arcsec"] - true["beta1_arcsec"][i]) / f["beta1_arcsec_err"]),
                      pull_beta2=float((f["beta2_arcsec"] - true["beta2_arcsec"][i]) / f["beta2_arcsec_err"]),
                      flag=int(f["flag"]))
@@ -205,10 +212,12 @@ def summarise(results):
     hi = [c for c in clumps if c["snr"] > 10 and c["recovered"]]
     out["snr_gt10_recovered"] = float(np.mean([c["recovered"] for c in clumps if c["snr"] > 10])) \
         if any(c["snr"] > 10 for c in clumps) else None
-    for p in ("flux", "re", "beta1", "beta2"):
-        v = np.array([c[f"pull_{p}"] for c in hi])
+    for p in ("flux", "re", "re_circ", "beta1", "beta2"):
+        v = np.array([c[f"pull_{p}"] for c in hi if f"pull_{p}" in c])   # NaN counts as > 3
         out[f"pull_{p}_within3"] = float(np.mean(np.abs(v) < 3)) if v.size else None
         out[f"pull_{p}_median"] = float(np.median(v)) if v.size else None
+    out["converged"] = float(np.mean([c["flag"] == 0 for c in clumps if c["recovered"]])) \
+        if any(c["recovered"] for c in clumps) else None
     out["false_per_scene"] = float(np.mean([r["false"] for r in results]))
     out["false_snr10_per_scene"] = float(np.mean([r["false_snr10"] for r in results]))
     out["max_false_snr10"] = int(max(r["false_snr10"] for r in results))
@@ -219,35 +228,64 @@ def _fmt(v):
     return "" if v is None else f"{v:.2f}"
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--seeds", type=int, default=4)
-    ap.add_argument("--scenes", default="unlensed,sis")
-    args = ap.parse_args()
-    results = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for kind in args.scenes.split(","):
-            for seed in range(args.seeds):
-                r = run_one(kind, seed, Path(tmp))
-                results.append(r)
-                print(kind, seed, f"fit {r['fit_s']:.0f} s, found {r['n_fit']}, false {r['false']} "
-                      f"(S/N>10: {r['false_snr10']}), recovered "
-                      f"{sum(c['recovered'] for c in r['clumps'])}/{len(r['clumps'])}", flush=True)
-    summary = {k: summarise([r for r in results if r["kind"] == k]) for k in args.scenes.split(",")}
+def _write(results, kinds, n_seeds, wall_s, name="recovery"):
+    """recovery.{json,md} from the seeds done so far (rewritten after each seed)."""
+    summary = {k: summarise([r for r in results if r["kind"] == k]) for k in kinds
+               if any(r["kind"] == k for r in results)}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "recovery.json").write_text(json.dumps(
+    (RESULTS / f"{name}.json").write_text(json.dumps(
         {"machine": machine(), "results": results, "summary": summary}, indent=2))
+    done = {k: sum(r["kind"] == k for r in results) for k in kinds}
     lines = ["# bench_recovery: clumpylen simulate -> clumpylen fit, images only", "",
-             f"{args.seeds} seeds per scene, {N_CLUMPS} clumps each; {machine()['date']}", ""]
+             f"{N_CLUMPS} clumps per scene; seeds done {done} of {n_seeds} each; "
+             f"{machine()['date']}; {wall_s:.0f} s wall in all", "",
+             "Per seed: simulate + fit wall time, 1-min load average when it ended (the machine "
+             "is shared), clumps found, false (unmatched) ones, recovered/true.", "",
+             "| scene | seed | fit s | load | found | false (S/N>10) | recovered |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['kind']} | {r['seed']} | {r['fit_s']:.0f} | {r['load']:.1f} | {r['n_fit']} | "
+              f"{r['false']} ({r['false_snr10']}) | {sum(c['recovered'] for c in r['clumps'])}/"
+              f"{len(r['clumps'])} |" for r in results]
+    lines.append("")
     for k, s in summary.items():
         lines += [f"## {k}", "", "| Fisher S/N | clumps | recovered |", "|---|---|---|"]
         lines += [f"| {b['snr'][0]}-{b['snr'][1] if b['snr'][1] < 1e8 else 'inf'} | {b['n']} | "
                   f"{_fmt(b['recovered'])} |" for b in s["bins"]]
-        lines += ["", f"S/N > 10: recovered {s['snr_gt10_recovered']}; |pull| < 3: flux "
-                  f"{s['pull_flux_within3']}, R_e {s['pull_re_within3']}, β1 {s['pull_beta1_within3']}, "
-                  f"β2 {s['pull_beta2_within3']}; false clumps per scene {s['false_per_scene']:.2f} "
+        lines += ["", f"S/N > 10: recovered {_fmt(s['snr_gt10_recovered'])}; |pull| < 3: flux "
+                  f"{_fmt(s['pull_flux_within3'])}, R_e {_fmt(s['pull_re_within3'])} "
+                  f"(circularised R_e√q: {_fmt(s['pull_re_circ_within3'])}), "
+                  f"β1 {_fmt(s['pull_beta1_within3'])}, β2 {_fmt(s['pull_beta2_within3'])}; "
+                  f"median pull flux {_fmt(s['pull_flux_median'])}, R_e {_fmt(s['pull_re_median'])} "
+                  f"(R_e√q {_fmt(s['pull_re_circ_median'])}); converged (flag 0) "
+                  f"{_fmt(s['converged'])}; "
+                  f"false clumps per scene {s['false_per_scene']:.2f} "
                   f"(S/N > 10: {s['false_snr10_per_scene']:.2f}, max {s['max_false_snr10']})", ""]
-    (RESULTS / "recovery.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
+    return lines
+
+
+def main():
+    import os
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--scenes", default="sis,unlensed")
+    ap.add_argument("--name", default="recovery", help="results/<name>.{json,md}")
+    args = ap.parse_args()
+    kinds = args.scenes.split(",")
+    results = []
+    t_all = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        # seeds interleaved across scenes: a run cut short still has numbers for each
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            for kind in kinds:
+                r = run_one(kind, seed, Path(tmp))
+                r["load"] = os.getloadavg()[0]
+                results.append(r)
+                print(kind, seed, f"fit {r['fit_s']:.0f} s (load {r['load']:.1f}), found {r['n_fit']}, "
+                      f"false {r['false']} (S/N>10: {r['false_snr10']}), recovered "
+                      f"{sum(c['recovered'] for c in r['clumps'])}/{len(r['clumps'])}", flush=True)
+                lines = _write(results, kinds, args.seeds, time.perf_counter() - t_all, args.name)
     print("\n".join(lines))
 
 

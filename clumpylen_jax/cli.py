@@ -159,12 +159,9 @@ def _read_fit_image(band: str, path: str):
     except Exception as exc:
         raise ConfigError(f"--image {band}", path, f"a readable FITS file ({exc})") from None
     with hdul:
-        names = [h.name for h in hdul]
-        idx = names.index("SCI") if "SCI" in names else next(
-            (i for i, h in enumerate(hdul) if h.data is not None and np.ndim(h.data) == 2), None)
-        if idx is None or np.ndim(hdul[idx].data) != 2:
-            raise ConfigError(f"--image {band}", path, f"a FITS file with a 2-D image (HDUs: {names})")
-        var = np.asarray(hdul["VARIANCE"].data, float) if "VARIANCE" in names else None
+        from .observations.read import find_image_hdu
+        idx = find_image_hdu(hdul, path, f"--image {band}")
+        var = np.asarray(hdul["VARIANCE"].data, float) if "VARIANCE" in [h.name for h in hdul] else None
         return np.asarray(hdul[idx].data, float), var
 
 
@@ -213,7 +210,6 @@ def _cmd_fit(args) -> int:
     s = sc.with_overrides(s, seed=args.seed, bands=list(images), noise=None)
     import numpy as np
 
-    from .inference.run import run_fit
     from .pipeline import prepare
 
     data, variances = {}, {}
@@ -246,15 +242,10 @@ def _cmd_fit(args) -> int:
         if not args.quiet:
             print(f"wrote {out} (fit.ecsv, fit_steps.json, residuals)")
         return EXIT_OK
-    from .inference.params import default_free
-    has_clumps = prep.source.clumps is not None and prep.source.clumps.count > 0
-    free = default_free(prep.source, host_fields=() if has_clumps else
-                        ("flux", "re_arcsec", "center_arcsec"))
-    run_fit(prep.model, prep.source, [data[b] for b in order],
-            [variances[b] for b in order] if variances else None, free=free,
-            method=args.method,
-            likelihood="gaussian" if variances else "gaussian_model_variance",
-            zeropoints_ab=prep.zeropoints, seed=s.seed, out_dir=out)
+    # a sampler starts from the same data-driven MAP fit, never from the scene's clumps
+    from .inference.auto_run import run_sampled_fit
+    run_sampled_fit(prep, [data[b] for b in order], [variances[b] for b in order] if variances else None,
+                    method=args.method, out_dir=out)
     if not args.quiet:
         print(f"wrote {out} (fit.ecsv, residuals{', chains.npz' if args.method != 'map' else ''})")
     return EXIT_OK

@@ -321,7 +321,10 @@ def _mock_scene(tmp_path, seed=0):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason='the mock fit did not report convergence in its last run (issue 17 open: host stage absorbing a clump; bounded centres not yet shown to fix it)', strict=False)
+@pytest.mark.xfail(reason='rerun 2026-11-25 (665 s): the joint LM stage stops at 200 steps NOT converged '
+                   '(honest flag): the host Sersic n runs to its lower bound 0.3 (true 1.0; q 0.37 vs 0.45, '
+                   'R_e 0.232+-0.009 vs 0.2) and creeps along that flat direction; chi2/dof 0.98 and 1.07 '
+                   'per band, 2 clumps kept. The fitter, not the test, is what is wrong (issue 17 open)', strict=True)
 def test_mock_mjy_sr_rotated_wcs_two_scales_fitted_back_with_honest_pulls(tmp_path):
     import json
 
@@ -441,7 +444,6 @@ def test_local_lens_maps_image_ellipses_to_the_source_plane():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason='last run differed by 2.5e-4 in R_e at a 1e-4 tolerance; relaxed to 1e-3 and not rerun (issue 17 open)', strict=False)
 def test_clump_that_grows_from_1_to_5_pixels_matches_a_start_at_5(tmp_path):
     """Issue 17 item 2: stamps are built for the R_e bound, so a clump started at R_e = 1 px
     that converges to 5 px is not truncated: the same answer as a start at 5 px."""

@@ -48,15 +48,15 @@ from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
 from .catalog import fit_table
 from .likelihood import make_data
-from .params import Free, FitState, Parametrization, make_state, parametrize
+from .params import Free, FitState, Parametrization, make_state, masked_clumps, parametrize
 from .transforms import Transform
-from .uncertainty import Uncertainty, safe_inverse
+from .uncertainty import Uncertainty, fisher_matrix, safe_inverse
 
 CRITERIA = ("bic", "lr")
 DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
 RE_MAX_PIXELS = 2.0        # default upper bound of clump R_e: 2 finest detector pixels
 LOCAL_SLOTS = 3            # clumps free in a counting step: the new one and its 2 nearest
-TOL = 1e-6                 # Levenberg–Marquardt rtol and atol
+TOL = 1e-6                 # Levenberg–Marquardt rtol (lm.py)
 RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the upper one
 CLUMP_Q_RANGE = (0.2, 1.0)
 HOST_N_RANGE = (0.3, 6.0)
@@ -75,7 +75,9 @@ class AutoOptions:
     re_max_arcsec: upper bound of clump R_e (None: RE_MAX_PIXELS finest detector pixels).
     seed: of the final perturbed starts.  clump_n: Sérsic index of every clump (fixed).
     detect_snr: candidates are matched-filtered S/N peaks above it.
-    max_steps: Levenberg–Marquardt steps per fit.
+    max_steps: Levenberg–Marquardt steps per fit (trials that are rejected count too). 40 was
+        too few: a clump started at R_e = 1 px that converges to 5 px needs 44 (it stopped
+        16 in ln L short, flagged not converged); a fit that converges earlier stops there.
     fit_shape: also fit each clump's q and PA (else round: most clumps are unresolved, and
         q, PA of an unresolved clump are degenerate directions that slow every fit).
     """
@@ -88,7 +90,7 @@ class AutoOptions:
     seed: int = 0
     clump_n: float = 0.5
     detect_snr: float = 4.0
-    max_steps: int = 40
+    max_steps: int = 100
     fit_shape: bool = False
 
     def validate(self) -> "AutoOptions":
@@ -321,7 +323,7 @@ def _fit(ctx: _Ctx, u0s, actives):
     pad = np.arange(s) % m
     t0 = time.perf_counter()
     us, lnl, ok, steps = capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0s[pad]),
-                                              jnp.asarray(actives[pad]), TOL, TOL,
+                                              jnp.asarray(actives[pad]), TOL,
                                               int(ctx.opts.max_steps))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m, int(actives[0].sum()),
@@ -340,7 +342,7 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives):
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(actives[pad]), TOL, TOL, int(ctx.opts.max_steps))
+        jnp.asarray(actives[pad]), TOL, int(ctx.opts.max_steps))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
@@ -505,8 +507,7 @@ def _spread(ctx: _Ctx, us, lnls, active):
 def _uncertainty(ctx: _Ctx, u, active):
     """Fisher errors of the host, background and kept clumps' entries (NaN elsewhere)."""
     x = ctx.param.physical_vector(jnp.asarray(u))
-    fisher = np.asarray(capacity.masked_fisher(ctx.model, ctx.data, ctx.param, x,
-                                               jnp.asarray(active, float)))
+    fisher = np.asarray(fisher_matrix(ctx.model, ctx.param, x, ctx.data, active=np.asarray(active, float)))
     keep = np.array([not lab.startswith("clumps.") or active[int(lab.split("[")[1].split(",")[0].rstrip("]"))] > 0
                      for lab in ctx.param.labels])
     cov = np.full(fisher.shape, np.nan)
@@ -598,7 +599,7 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
     spread = _spread(ctx, us, lnls, active)
     unc, _ = _uncertainty(ctx, u, active)
-    state = capacity.masked(ctx.param.state(jnp.asarray(u)), active)
+    state = masked_clumps(ctx.param.state(jnp.asarray(u)), active)
     idx = np.nonzero(active > 0)[0]
     table = _table(ctx, state, unc, idx, np.full(idx.size, ok), spread, n_images, zeropoints_ab)
     table.meta.update({"method": "auto", "criterion": opts.criterion,

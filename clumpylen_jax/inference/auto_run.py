@@ -7,6 +7,10 @@ parameters are never read: the host starts from the images' moments.
 
 Writes into out_dir (atomically): fit.ecsv (the catalogue, with flag and blend
 columns), fit_steps.json (one entry per counting step) and residuals_<band>.fits.
+
+`--method emcee|nuts` (`run_sampled_fit`): the same data-driven MAP fit first, then the
+sampler from it (the clumps it kept, the host and background it fitted), as an astronomer
+would: never from the scene's catalogue.
 """
 
 from __future__ import annotations
@@ -60,8 +64,8 @@ def _clump_n(scene):
 def write_auto_fit(fit, images, variances, out_dir) -> list:
     """fit.ecsv, fit_steps.json and residuals_<band>.fits in out_dir."""
     from ..io import write_catalog, write_json
-    from .capacity import masked
     from .likelihood import make_data
+    from .params import masked_clumps
     from .run import _write_residuals
 
     out = Path(out_dir)
@@ -69,5 +73,38 @@ def write_auto_fit(fit, images, variances, out_dir) -> list:
     write_catalog(out / "fit.ecsv", fit.table)
     write_json(out / "fit_steps.json", fit.steps)
     data = make_data(fit.model, list(images), list(variances), kind="gaussian")
-    state = masked(fit.param.state(fit.u), fit.active)
+    state = masked_clumps(fit.param.state(fit.u), fit.active)
     return [out / "fit.ecsv", out / "fit_steps.json"] + _write_residuals(out, fit.model, data, state)
+
+
+def run_sampled_fit(prep, images, variances=None, *, method="emcee", out_dir=None, mcmc=None):
+    """`run_auto_fit` (clumps found and counted from the images), then `run_fit` with
+    `method` ("emcee" or "nuts") started at that optimum: flux, centre and R_e of every kept
+    clump, the host's flux, R_e and centre and the background level per band are sampled.
+
+    The sampling model is built for the kept clumps with every stamp at the R_e bound of the
+    auto fit (a clump the chain grows is not truncated). Returns (AutoFit, FitRun).
+    """
+    import jax.numpy as jnp
+
+    from .run import run_fit
+    from .params import default_free
+
+    auto_fit = run_auto_fit(prep, images, variances)
+    src = auto_fit.state.source
+    build = src
+    if src.clumps is not None and src.clumps.count > 0:
+        re_hi = float(auto_fit.table.meta["re_bounds_arcsec"][1])
+        build = dataclasses.replace(src, clumps=dataclasses.replace(
+            src.clumps, re_arcsec=jnp.full_like(src.clumps.re_arcsec, re_hi)))
+    model = make_model_factory(prep)(build)
+    free = default_free(src, host_fields=("flux", "re_arcsec", "center_arcsec"), background=True)
+    run = run_fit(model, src, list(images), None if variances is None else list(variances),
+                  free=free, method=method,
+                  likelihood="gaussian" if variances is not None else "gaussian_model_variance",
+                  zeropoints_ab=prep.zeropoints, seed=int(prep.scene.seed), mcmc=mcmc,
+                  out_dir=out_dir, background_start=np.asarray(auto_fit.state.background_counts_per_s))
+    if out_dir is not None:
+        from ..io import write_json
+        write_json(Path(out_dir) / "fit_steps.json", auto_fit.steps)
+    return auto_fit, run

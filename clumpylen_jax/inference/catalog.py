@@ -15,7 +15,17 @@ import numpy as np
 
 from .params import FitState, Parametrization
 
-_MAG_PER_LN = 2.5 / np.log(10.0)
+MAG_PER_LN = 2.5 / np.log(10.0)   # σ_m = MAG_PER_LN · σ_F / F (delta method)
+
+
+def ab_magnitude(flux, zeropoint_ab):
+    """AB magnitude ZP − 2.5 log10 F of fluxes F > 0 in the zero point's units (counts/s)."""
+    return zeropoint_ab - 2.5 * np.log10(flux)
+
+
+def ab_magnitude_err(flux, flux_err):
+    """1σ magnitude error of a flux F ± σ_F by the delta method."""
+    return MAG_PER_LN * flux_err / flux
 
 
 def errors_state(param: Parametrization, err) -> FitState:
@@ -78,7 +88,7 @@ def fit_table(state: FitState, errors: Optional[FitState] = None, *, band_names,
         add(f"flux_{name}", flux[:, b], f_err[:, b])
         if name in zps:
             with np.errstate(divide="ignore", invalid="ignore"):
-                mag = np.where(flux[:, b] > 0, zps[name] - 2.5 * np.log10(flux[:, b]), np.inf)
-                mag_err = _MAG_PER_LN * f_err[:, b] / flux[:, b]
+                mag = np.where(flux[:, b] > 0, ab_magnitude(flux[:, b], zps[name]), np.inf)
+                mag_err = ab_magnitude_err(flux[:, b], f_err[:, b])
             add(f"mag_{name}", mag, np.where(flux[:, b] > 0, mag_err, np.inf))
     return t

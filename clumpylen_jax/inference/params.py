@@ -63,6 +63,14 @@ class FitState(eqx.Module):
         return eqx.tree_at(lambda s: s.clumps.flux, self.source, flux.astype(self.source.clumps.flux.dtype))
 
 
+def masked_clumps(state: FitState, active) -> FitState:
+    """The state with clump k's fluxes multiplied by active[k] (0 or 1): a fixed capacity of
+    clump slots of which only the active ones shine (`capacity.py`)."""
+    flux = state.source.clumps.flux
+    return eqx.tree_at(lambda s: s.source.clumps.flux, state,
+                       flux * jnp.asarray(active, flux.dtype)[:, None])
+
+
 def make_state(source: Source, n_bands: int, *, background_counts_per_s=None, mass_msun=None,
                age_myr=None, photometry=None, dtype=jnp.float64) -> FitState:
     """A FitState with every floating leaf cast to `dtype` (weak types would change jit keys)."""

@@ -88,7 +88,7 @@ def _host_meta(state, param, err) -> dict:
 
 def run_fit(scene_model, source_start, images, variances=None, *, free=None, method="map",
             likelihood="gaussian", mask=None, zeropoints_ab=None, background=False, n_starts=1,
-            seed=0, mcmc=None, out_dir=None) -> FitRun:
+            seed=0, mcmc=None, out_dir=None, background_start=None) -> FitRun:
     """Fit a scene model's source to images and (optionally) write the results.
 
     scene_model: `model.build_model(...)` output (lens and bands fixed).
@@ -98,13 +98,15 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
     method: "map", "emcee" or "nuts".  likelihood: "gaussian" (needs variances),
         "gaussian_model_variance" or "poisson".
     zeropoints_ab: {band: ZP} for mag columns.  background: fit a level per band.
+    background_start: [B] its start (counts/s per pixel; None: 0).
     n_starts: MAP starts (perturbed by 0.1 in u, vmapped).  seed: for starts and samplers.
     mcmc: keyword arguments for `run_emcee` / `run_nuts` (n_steps, n_walkers, n_warmup, ...).
     out_dir: where to write fit.ecsv, chains.npz, residuals_<band>.fits (None: nothing written).
     """
     require(method in ("map", "emcee", "nuts"), "method", method, '"map", "emcee" or "nuts"')
     data = make_data(scene_model, images, variances, mask, kind=likelihood)
-    state0 = make_state(source_start, len(scene_model.layouts))
+    state0 = make_state(source_start, len(scene_model.layouts),
+                        background_counts_per_s=background_start)
     if free is None:
         free = default_free(source_start, background=background)
     elif background and "background" not in free:

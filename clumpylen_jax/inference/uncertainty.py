@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from .likelihood import ImageData, make_log_posterior, predicted_images
-from .params import Parametrization
+from .params import Parametrization, masked_clumps
 
 
 class Uncertainty(eqx.Module):
@@ -61,12 +61,14 @@ def safe_inverse(matrix, rcond: float = 1e-12):
     return (v / w[None, :]) @ v.T
 
 
-def _model_vector(scene_model, param, x):
-    return jnp.concatenate([img.ravel() for img in
-                            predicted_images(scene_model, param.state_from_physical(x))])
+def _model_vector(scene_model, param, x, active=None):
+    state = param.state_from_physical(x)
+    if active is not None:
+        state = masked_clumps(state, active)
+    return jnp.concatenate([img.ravel() for img in predicted_images(scene_model, state)])
 
 
-def _weights(scene_model, data: Optional[ImageData], mu):
+def pixel_weights(scene_model, data: Optional[ImageData], mu):
     """1/σ² per pixel, flattened over bands, with the mask applied."""
     parts, start = [], 0
     for k, lay in enumerate(scene_model.layouts):
@@ -82,19 +84,28 @@ def _weights(scene_model, data: Optional[ImageData], mu):
     return jnp.concatenate(parts)
 
 
+def fisher_of(model_vector, x, weights):
+    """Jᵀ W J with J = ∂model_vector/∂x at x (forward mode: one pass per parameter) and
+    W = weights(model_vector(x)) per pixel (`pixel_weights`)."""
+    mu = model_vector(x)
+    jac = jax.jacfwd(model_vector)(x)
+    return (jac * weights(mu)[:, None]).T @ jac
+
+
 @eqx.filter_jit
-def _fisher(scene_model, data, param, x):
-    f = lambda xx: _model_vector(scene_model, param, xx)  # noqa: E731
-    mu = f(x)
-    jac = jax.jacfwd(f)(x)  # forward mode: one pass per free parameter
-    w = _weights(scene_model, data, mu)
-    return (jac * w[:, None]).T @ jac
+def _fisher(scene_model, data, param, x, active):
+    return fisher_of(lambda xx: _model_vector(scene_model, param, xx, active), x,
+                     lambda mu: pixel_weights(scene_model, data, mu))
 
 
-def fisher_matrix(scene_model, param: Parametrization, x=None, data: Optional[ImageData] = None):
-    """Fisher matrix of the physical free parameters at x (default: the template's values)."""
+def fisher_matrix(scene_model, param: Parametrization, x=None, data: Optional[ImageData] = None,
+                  active=None):
+    """Fisher matrix of the physical free parameters at x (default: the template's values).
+
+    active: None, or [N] 0/1 per clump slot (`params.masked_clumps`): inactive slots give
+    zero rows and columns (the fixed-capacity fits of `capacity.py`)."""
     x = param.physical_of_state() if x is None else jnp.asarray(x)
-    return _fisher(scene_model, data, param, x)
+    return _fisher(scene_model, data, param, x, None if active is None else jnp.asarray(active))
 
 
 def fisher_uncertainty(scene_model, param: Parametrization, x=None,

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-MAG_PER_LN = 2.5 / np.log(10.0)
+from ..inference.catalog import ab_magnitude, ab_magnitude_err
 CALIBRATION_FLOOR = 0.05   # fractional flux error added in quadrature for the SED fit
 AGE_GRID = 60
 MASS_GRID = 241
@@ -153,9 +153,9 @@ def clump_rows(fit, observations, frame, scene):
         t[f"flux_{ob.name}"] = F
         t[f"flux_{ob.name}_err"] = s
         with np.errstate(divide="ignore", invalid="ignore"):
-            mag = np.where(det, ob.zeropoint_ab - 2.5 * np.log10(np.abs(F)),
-                           ob.zeropoint_ab - 2.5 * np.log10(np.maximum(F, 0) + opts.detection_snr * s))
-            mag_err = np.where(det, MAG_PER_LN * s / np.abs(F), np.nan)
+            mag = np.where(det, ab_magnitude(np.abs(F), ob.zeropoint_ab),
+                           ab_magnitude(np.maximum(F, 0) + opts.detection_snr * s, ob.zeropoint_ab))
+            mag_err = np.where(det, ab_magnitude_err(np.abs(F), s), np.nan)
         t[f"mag_{ob.name}"] = mag
         t[f"mag_{ob.name}_err"] = mag_err
         t[f"uplim_{ob.name}"] = ~det
@@ -164,7 +164,8 @@ def clump_rows(fit, observations, frame, scene):
             t[f"mag_int_{ob.name}_err"] = mag_err
     if len(observations) >= 2 and scene.z_source is not None:
         mu = abs(lens.magnification) if lens is not None else 1.0
-        ujy = np.array([10 ** (-0.4 * (ob.zeropoint_ab - 23.9)) for ob in observations])
+        from ..photometry import AB_ZERO_UJY
+        ujy = np.array([10 ** (-0.4 * (ob.zeropoint_ab - AB_ZERO_UJY)) for ob in observations])
         masses = sed_fit(flux * ujy / mu, f_err * ujy / mu, [ob.name for ob in observations],
                          scene.z_source, dict(scene.sps), scene.cosmology)
         for key, val in masses.items():
@@ -249,6 +250,6 @@ def host_summary(fit, observations, frame):
         e = err(f"bulge.flux[{b}]")
         out[f"flux_{ob.name}"] = F
         out[f"flux_{ob.name}_err"] = e
-        out[f"mag_{ob.name}"] = ob.zeropoint_ab - 2.5 * np.log10(F) if F > 0 else None
-        out[f"mag_{ob.name}_err"] = MAG_PER_LN * e / F if (e is not None and F > 0) else None
+        out[f"mag_{ob.name}"] = float(ab_magnitude(F, ob.zeropoint_ab)) if F > 0 else None
+        out[f"mag_{ob.name}_err"] = float(ab_magnitude_err(F, e)) if (e is not None and F > 0) else None
     return out

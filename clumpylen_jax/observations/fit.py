@@ -43,7 +43,7 @@ from ..inference.transforms import IDENTITY, LOG, Transform
 from ..inference.uncertainty import fisher_uncertainty
 from ..model import Accuracy, Band, build_model
 from ..source import Clumps, Sersic, Source
-from .lm import lm_fit
+from ..inference.lm import lm_fit
 
 HOST_N = (0.3, 8.0)          # host Sérsic index range
 HOST_Q_MIN = 0.08            # thinnest host (an arc seen edge-on is thin)

@@ -22,14 +22,20 @@ def _wcs_header(ob, frame_band):
     return h
 
 
+def chi_map(ob, fit, k):
+    """(data − model)/σ of band k on the data's pixels, NaN where masked: the one place the
+    residual files, the figure and χ²/dof compute it."""
+    mu = np.asarray(fit.images[k], float)
+    return np.where(ob.mask, (ob.data - mu) / np.sqrt(np.asarray(fit.data.variances[k], float)), np.nan)
+
+
 def write_residuals(out: Path, observations, fit) -> list:
     """residuals_<FILTER>.fits: DATA, MODEL, RESIDUAL, CHI on the data's pixels and WCS."""
     paths = []
     for k, ob in enumerate(observations):
         mu = np.asarray(fit.images[k], float)
-        var = np.asarray(fit.data.variances[k], float)
         d = np.where(ob.mask, ob.data, np.nan)
-        chi = np.where(ob.mask, (d - mu) / np.sqrt(var), np.nan)
+        chi = chi_map(ob, fit, k)
         hdr = _wcs_header(ob, ob.frame)
         path = out / f"residuals_{ob.name}.fits"
         write_residual_fits(path, d, mu, chi, header=hdr, chi_bunit="sigma", primary_header=hdr)
@@ -74,7 +80,7 @@ def write_png(path: Path, observations, fit, table, frame) -> Path:
     for k, ob in enumerate(observations):
         d = np.where(ob.mask, ob.data, np.nan)
         mu = np.asarray(fit.images[k])
-        chi = np.where(ob.mask, (ob.data - mu) / np.sqrt(np.asarray(fit.data.variances[k])), np.nan)
+        chi = chi_map(ob, fit, k)
         lo, hi = np.nanpercentile(d, [5, 99.7])
         for j, (img, title, kw) in enumerate((
                 (_stretch(d, lo, hi), f"{ob.name} data", dict(cmap="gray_r", vmin=0, vmax=1)),
@@ -110,9 +116,7 @@ def chi2_per_dof(observations, fit) -> dict:
     total = sum(n_pix)
     out = {}
     for k, ob in enumerate(observations):
-        mu = np.asarray(fit.images[k])
-        var = np.asarray(fit.data.variances[k])
-        chi2 = float(np.sum(np.where(ob.mask, (ob.data - mu) ** 2 / var, 0.0)))
+        chi2 = float(np.nansum(chi_map(ob, fit, k) ** 2))
         dof = max(n_pix[k] - n_free * n_pix[k] / total, 1.0)
         out[ob.name] = chi2 / dof
     return out

@@ -88,29 +88,31 @@ def _open(path: str, where: str, key: str):
         raise ConfigError(f"{where}.{key}", str(path), f"a readable FITS file ({exc})") from exc
 
 
-def _image_hdu(hdul, hdu, path, where, key):
-    """Index of the image HDU: `hdu` if given, else SCI, else the first 2-D image."""
+def find_image_hdu(hdul, path, setting: str, hdu=None, hdu_setting=None) -> int:
+    """Index of the image HDU: `hdu` if given, else SCI, else the first 2-D image (also what
+    `clumpylen fit SCENE --image` reads). setting / hdu_setting: named in the ConfigError."""
     names = [h.name for h in hdul]
     if hdu is not None:
         try:
             idx = hdul.index_of(hdu)
             hdul[idx]
         except (KeyError, IndexError):
-            raise ConfigError(f"{where}.{'hdu' if key == 'image' else key}", hdu,
-                              f"an HDU of {path} (it has {names})") from None
+            raise ConfigError(hdu_setting or setting, hdu, f"an HDU of {path} (it has {names})") from None
     elif "SCI" in names:
         idx = names.index("SCI")
     else:
         idx = next((i for i, h in enumerate(hdul) if getattr(h, "data", None) is not None
                     and np.ndim(h.data) == 2), None)
         if idx is None:
-            raise ConfigError(f"{where}.{key}", path,
-                              f"a FITS file with a SCI HDU or a 2-D image (HDUs: {names})")
+            raise ConfigError(setting, path, f"a FITS file with a SCI HDU or a 2-D image (HDUs: {names})")
     data = hdul[idx].data
     if data is None or np.ndim(data) != 2 or min(np.shape(data)) < 2:
-        raise ConfigError(f"{where}.{key}", f"{path}[{names[idx]}] of shape {np.shape(data)}",
-                          "a 2-D image")
+        raise ConfigError(setting, f"{path}[{names[idx]}] of shape {np.shape(data)}", "a 2-D image")
     return idx
+
+
+def _image_hdu(hdul, hdu, path, where, key):
+    return find_image_hdu(hdul, path, f"{where}.{key}", hdu, f"{where}.{'hdu' if key == 'image' else key}")
 
 
 def _plane(ref: str, hdul, path, shape, where, key):

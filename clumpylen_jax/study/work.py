@@ -150,11 +150,11 @@ def _inject(model, base, new: Clumps, seeds):
 def fisher_snr(model, base, new: Clumps):
     """Forecast S/N of each injected clump's flux per band, [P, B] (vmapped over clumps).
 
-    Fisher matrix of (flux per band, R_e, centre) with the expected Poisson variance
-    (model + sky)/t, marginalised over R_e, centre and the other bands (F⁻¹).
+    Fisher matrix (`uncertainty.fisher_of`) of (flux per band, R_e, centre) with the
+    expected Poisson variance (model + sky)/t, marginalised over R_e, centre and the other
+    bands (F⁻¹, `safe_inverse`).
     """
-    t = jnp.concatenate([jnp.full(lay.grid.shape[0] * lay.grid.shape[1], lay.exptime_s)
-                         for lay in model.layouts])
+    from ..inference.uncertainty import fisher_of, pixel_weights, safe_inverse
     nb = len(model.layouts)
 
     def one(c):
@@ -164,10 +164,7 @@ def fisher_snr(model, base, new: Clumps):
             return jnp.concatenate([im.ravel() for im in model.noiseless(_append(base, cl))])
 
         theta = jnp.concatenate([c.flux[0], c.re_arcsec, c.center_arcsec[0]])
-        m = mu(theta)
-        jac = jax.jacfwd(mu)(theta)
-        w = t / jnp.maximum(m, 1e-12)
-        cov = jnp.linalg.inv((jac * w[:, None]).T @ jac)
+        cov = safe_inverse(fisher_of(mu, theta, lambda m: pixel_weights(model, None, m)))
         return theta[:nb] / jnp.sqrt(jnp.diag(cov)[:nb])
 
     return jax.vmap(one)(jax.tree_util.tree_map(lambda x: x[:, None], new))

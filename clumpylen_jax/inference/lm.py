@@ -1,4 +1,5 @@
-"""Levenberg–Marquardt with one forward-mode Jacobian per step: the solver of observation fits.
+"""Levenberg–Marquardt with one forward-mode Jacobian per step: the one solver of the
+observation fits (`observations/fit.py`) and of the clump counting (`capacity.py`, `auto.py`).
 
 Why not optimistix's LevenbergMarquardt (used elsewhere in inference/): its compiled
 program holds the scene model several times (residual, linearisation, trial step), and
@@ -8,6 +9,13 @@ Jacobian together (`jax.jacfwd(..., has_aux=True)`: one trace of the model) at a
 point, accepts it if χ² dropped (λ ← λ/3) or keeps the previous point (λ ← 4λ), and
 proposes the next trial from (JᵀJ + λ diag JᵀJ) δ = −Jᵀr. The Jacobian at the optimum is
 returned, so errors need no further compile. benchmarks/bench_optimizers.py measures both.
+
+Converged (`success`) means one of two things, never "ran out of steps" nor "damping
+maxed out while a Gauss–Newton step would still gain": an accepted step close to
+Gauss–Newton (λ ≤ 1) that lowered χ² by less than rtol·χ², or damping above LAMBDA_MAX
+at a point where the full Gauss–Newton step predicts a χ² gain below DECREMENT_TOL (the
+minimum within rounding). A parameter with a zero Jacobian column (an inactive clump slot
+of `capacity.py`) gets a zero step.
 """
 
 from __future__ import annotations
@@ -16,10 +24,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..inference.likelihood import make_residuals
+from .likelihood import make_residuals
 
 LAMBDA0 = 1e-3
 LAMBDA_MAX = 1e12
+LAMBDA_GN = 1e-12         # damping of the "Gauss–Newton" step of the stuck test (zero columns)
 DECREMENT_TOL = 1e-2      # χ² a Gauss–Newton step may still gain at a converged point
 
 
@@ -37,14 +46,12 @@ def _propose(u, r, J, lam):
     d = jnp.diag(H)
     d = jnp.where(d > 0, d, 1.0)
     delta = jnp.linalg.solve(H + lam * jnp.diag(d), -g)
-    return u + jnp.where(jnp.isfinite(delta), delta, 0.0), delta
+    delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
+    return u + delta, delta, g
 
 
-@eqx.filter_jit
-def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-7):
-    """Minimise |whitened residuals|² over u from u0 (see the module doc)."""
-    resid = make_residuals(scene_model, data, param)
-
+def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7) -> LMResult:
+    """Minimise |resid(u)|² over u from u0 (module doc). Traceable: vmap it for many starts."""
     def r_and_j(u):
         def f(v):
             r = resid(v)
@@ -53,9 +60,11 @@ def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-
         return r, J
 
     n = u0.size
-    r0 = jnp.zeros(sum(int(m.size) for m in data.masks), u0.dtype)
+    r_shape = jax.eval_shape(resid, u0)
+    r0 = jnp.zeros(r_shape.shape, u0.dtype)
     init = dict(u=u0, r=r0, J=jnp.zeros((r0.size, n), u0.dtype), chi2=jnp.asarray(jnp.inf, u0.dtype),
-                trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype), step=0, done=False, ok=False)
+                trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype), step=jnp.asarray(0),
+                done=jnp.asarray(False), ok=jnp.asarray(False))
 
     def cond(s):
         return (s["step"] < max_steps) & ~s["done"]
@@ -71,14 +80,20 @@ def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-
         u, r, J, chi2 = (keep(s["trial"], s["u"]), keep(r_t, s["r"]), keep(J_t, s["J"]),
                          keep(c_t, s["chi2"]))
         lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
-        trial, _ = _propose(u, r, J, lam)
+        trial, _, _ = _propose(u, r, J, lam)
         stuck = lam > LAMBDA_MAX
         # stuck at the largest damping: converged only if a full Gauss–Newton step would
         # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
-        _, gn = _propose(u, r, J, 0.0)
-        at_min = -2.0 * jnp.dot(J.T @ r, gn) < DECREMENT_TOL
+        _, gn, g = _propose(u, r, J, LAMBDA_GN)
+        at_min = -2.0 * jnp.dot(g, gn) < DECREMENT_TOL
         return dict(u=u, r=r, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
                     done=small | stuck, ok=small | (stuck & at_min))
 
     s = jax.lax.while_loop(cond, body, init)
     return LMResult(s["u"], s["chi2"], s["J"], s["step"], s["ok"])
+
+
+@eqx.filter_jit
+def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-7) -> LMResult:
+    """`levenberg_marquardt` of the whitened residuals of `data` over param's u from u0."""
+    return levenberg_marquardt(make_residuals(scene_model, data, param), u0, max_steps, rtol)
