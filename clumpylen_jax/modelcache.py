@@ -22,37 +22,16 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import pickle
-import sys
 from pathlib import Path
 
-import jax
-import numpy as np
 
 from .io import atomic_write
-from .programcache import _environment, _package_digest
+from .programcache import _environment, _package_digest, feed_pytree
 
 _LAYOUT = "1"
 # A built paper scene is ~160 MB and every seed builds another: keep only the models of the
 # last few runs (most recently used first), so the folder cannot grow without bound.
 KEEP_MODELS = 4
-
-
-def _feed(h, obj) -> bool:
-    """Hash obj's content into h: pytrees by structure and leaf bytes; False if unkeyable."""
-    leaves, tree = jax.tree_util.tree_flatten(obj)
-    with np.printoptions(threshold=sys.maxsize):
-        text = str(tree)
-        for leaf in leaves:
-            if isinstance(leaf, (np.ndarray, np.generic, jax.Array)):
-                a = np.ascontiguousarray(np.asarray(leaf))
-                h.update(f"{a.dtype}{a.shape}".encode())
-                h.update(a.tobytes())
-            else:
-                text += f"\0{type(leaf).__qualname__}:{leaf!r}"
-    if " at 0x" in text:
-        return False
-    h.update(text.encode())
-    return True
 
 
 def model_key(source, bands, lens, **settings) -> str | None:
@@ -61,7 +40,7 @@ def model_key(source, bands, lens, **settings) -> str | None:
     h.update(_package_digest())
     band_fields = [dataclasses.asdict(b) for b in bands]
     for part in (source, band_fields, lens, sorted(settings.items(), key=lambda kv: kv[0])):
-        if not _feed(h, part):
+        if not feed_pytree(h, part):
             return None
     return h.hexdigest()
 

@@ -37,7 +37,7 @@ import numpy as np
 from . import __version__
 from .io import atomic_write
 
-_LAYOUT = "1"       # bump when the file layout or the key changes
+_LAYOUT = "2"       # bump when the file layout or the key changes
 
 
 @functools.lru_cache(maxsize=1)
@@ -63,6 +63,26 @@ def _is_dynamic(x) -> bool:
     return eqx.is_array(x)
 
 
+def feed_pytree(h, obj) -> bool:
+    """Hash a pytree's content into `h`: its structure, arrays (numpy or JAX) by dtype,
+    shape and bytes, other leaves by type and repr. False (and `h` unusable) when a leaf
+    is known only by its address, so that no stable key exists."""
+    leaves, tree = jax.tree_util.tree_flatten(obj)
+    with np.printoptions(threshold=sys.maxsize):
+        text = str(tree)
+        for leaf in leaves:
+            if isinstance(leaf, (np.ndarray, np.generic, jax.Array)):
+                a = np.ascontiguousarray(np.asarray(leaf))
+                h.update(f"{a.dtype}{a.shape}".encode())
+                h.update(a.tobytes())
+            else:
+                text += f"\0{type(leaf).__qualname__}:{leaf!r}"
+    if " at 0x" in text:
+        return False
+    h.update(text.encode())
+    return True
+
+
 def program_key(name: str, dyn_leaves, dyn_tree, static) -> str | None:
     """Hex SHA-256 naming a program (see the module docstring), or None when it cannot
     be keyed completely."""
@@ -71,21 +91,7 @@ def program_key(name: str, dyn_leaves, dyn_tree, static) -> str | None:
     h.update(str(dyn_tree).encode())
     for leaf in dyn_leaves:
         h.update(f"{leaf.dtype}{leaf.shape};".encode())
-    s_leaves, s_tree = jax.tree_util.tree_flatten(static)
-    with np.printoptions(threshold=sys.maxsize):
-        text = str(s_tree)
-        parts = [text]
-        for leaf in s_leaves:
-            if isinstance(leaf, np.ndarray):
-                h.update(f"{leaf.dtype}{leaf.shape}".encode())
-                h.update(np.ascontiguousarray(leaf).tobytes())
-                continue
-            parts.append(f"{type(leaf).__qualname__}:{leaf!r}")
-    blob = "\0".join(parts)
-    if " at 0x" in blob:      # an object known by its address: no stable key
-        return None
-    h.update(blob.encode())
-    return h.hexdigest()
+    return h.hexdigest() if feed_pytree(h, static) else None
 
 
 def _as_key_data(leaf):
