@@ -47,6 +47,9 @@ _EXPORTS = {
     "Texture": "source", "Clumps": "source",
     # the model
     "Accuracy": "model", "ACCURACY_PRESETS": "model", "Band": "model", "build_model": "model",
+    # bands and fluxes from names, magnitudes, masses and ages
+    "make_band": "builders", "band_zeropoint_ab": "builders", "band_counts_per_s": "builders",
+    "ab_magnitudes": "photometry",
     # lenses
     "SIS": "lensing", "SIE": "lensing", "NFW": "lensing", "DPIE": "lensing",
     "ExternalShear": "lensing", "MassSheet": "lensing", "LensSum": "lensing",

@@ -270,6 +270,14 @@ def mag_to_counts_per_s(mag_ab, zeropoint_ab):
     return 10.0 ** (-0.4 * (jnp.asarray(mag_ab) - zeropoint_ab))
 
 
+def mags_to_counts_per_s_or_zero(mag_ab, zeropoint_ab) -> np.ndarray:
+    """Count rates (numpy) of AB magnitudes; 0 where a magnitude is not finite (no light)."""
+    mag_ab = np.asarray(mag_ab, float)
+    ok = np.isfinite(mag_ab)
+    counts = mag_to_counts_per_s(np.where(ok, mag_ab, 0.0), np.asarray(zeropoint_ab, float))
+    return np.where(ok, counts, 0.0)
+
+
 def counts_per_s_to_mag(counts_per_s, zeropoint_ab):
     """AB magnitude of a count rate (e⁻/s): ZP − 2.5 log10(counts/s)."""
     return zeropoint_ab - 2.5 * jnp.log10(jnp.asarray(counts_per_s))

@@ -23,6 +23,7 @@ import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
 from . import profiles, render, rgbimage, rundir, scene as scene_mod
+from .builders import model_band
 from .cache import cache_enabled, cache_root
 from .errors import ConfigError
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
@@ -183,14 +184,6 @@ def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
     return mags
 
 
-def _counts_per_s(mags, zps):
-    """Counts/s of AB magnitudes (arrays, per band); 0 where a magnitude is not finite (no light)."""
-    mags = np.asarray(mags, float)
-    ok = np.isfinite(mags)
-    counts = photometry.mag_to_counts_per_s(np.where(ok, mags, 0.0), np.asarray(zps, float))
-    return np.where(ok, counts, 0.0)
-
-
 def _fixed_shape_calls(fn, chunk=1 << 16):
     """A numpy function evaluating a jitted fn(x, y) in padded chunks of one shape (one compile)."""
     def call(x, y):
@@ -279,23 +272,9 @@ def _clump_mags(scene, table, filters, cosmology):
 
 def _bands(scene, accuracy):
     """model.Band per scene band, with PSFs resolved; and the zero points."""
-    from .psf import psf_for_band
-    out, zps = [], {}
-    for i, b in enumerate(scene.bands):
-        if b.pixel_arcsec is None or b.zeropoint_ab is None:
-            raise ConfigError(f"bands[{i}]", b.filter, "a band with pixel_arcsec and zeropoint_ab")
-        zps[b.filter] = float(b.zeropoint_ab)
-        psf = psf_for_band(b.psf, instrument=b.instrument, filter_name=b.filter,
-                           detector_pixel_arcsec=b.pixel_arcsec,
-                           psf_pixel_arcsec=b.psf_pixel_arcsec,
-                           oversampling=max(accuracy.psf_oversampling, 2) * 2 - 1,
-                           base_dir=scene.base_dir, setting=f"bands[{i}].psf",
-                           grid_oversampling=accuracy.psf_oversampling)
-        out.append(model_mod.Band(
-            b.filter, float(b.pixel_arcsec), float(b.exptime_s or 1.0), float(b.sky_counts_per_s),
-            None if psf is None else psf.array, None if psf is None else psf.pixel_arcsec,
-            bool(b.psf_effective or (psf is not None and psf.effective))))
-    return out, zps
+    out = [model_band(b, accuracy, base_dir=scene.base_dir, setting=f"bands[{i}]")
+           for i, b in enumerate(scene.bands)]
+    return out, {b.filter: float(b.zeropoint_ab) for b in scene.bands}
 
 
 def _field(scene, lens, source, accuracy):
@@ -333,18 +312,18 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         bulge = disk = clumps = None
         if src.bulge is not None:
             mags = _component_mags(src.bulge, host_masses["bulge"], filters, zps, scene, cosmology)
-            flux = _counts_per_s([mags[f] for f in filters], [zps[f] for f in filters])
+            flux = photometry.mags_to_counts_per_s_or_zero([mags[f] for f in filters], [zps[f] for f in filters])
             bulge = dataclasses.replace(bulge_t, flux=jnp.asarray(flux, jnp.float64))
         if src.disk is not None:
             mags = _component_mags(src.disk, host_masses["disk"], filters, zps, scene, cosmology)
-            flux = _counts_per_s([mags[f] for f in filters], [zps[f] for f in filters])
+            flux = photometry.mags_to_counts_per_s_or_zero([mags[f] for f in filters], [zps[f] for f in filters])
             disk = dataclasses.replace(
                 disk_t, sersic=dataclasses.replace(disk_t.sersic, flux=jnp.asarray(flux, jnp.float64)))
         if table is not None and len(table):
             cm = _clump_mags(scene, table, filters, cosmology)
             for k, f in enumerate(filters):
                 table[f"mag_{f}"] = cm[:, k]
-            flux = _counts_per_s(cm, [zps[f] for f in filters])
+            flux = photometry.mags_to_counts_per_s_or_zero(cm, [zps[f] for f in filters])
             clumps = Clumps(
                 jnp.asarray(np.stack([table["beta1_arcsec"], table["beta2_arcsec"]], axis=1), float),
                 jnp.asarray(flux), jnp.asarray(np.asarray(table["re_arcsec"], float)),

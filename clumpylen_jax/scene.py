@@ -917,8 +917,8 @@ def _instrument_defaults(instrument: str, filter_name: str, setting: str) -> dic
                           " (or give pixel_arcsec and zeropoint_ab)") from exc
 
 
-def _band(t, i: int, base_dir, noise: bool) -> Band:
-    p = f"bands[{i}]"
+def _band(t, i: int, base_dir, noise: bool, path: str | None = None) -> Band:
+    p = path or f"bands[{i}]"
     t = _table(t, p)
     _check_keys(t, p, _BAND_KEYS)
     instrument = _choice(t, "instrument", p, INSTRUMENTS)
