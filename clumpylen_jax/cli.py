@@ -369,7 +369,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"clumpylen_jax {_version()}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_scene_commands(sub)
+    _add_run_commands(sub)
+    _add_run_dir_commands(sub)
+    return p
 
+
+def _add_scene_commands(sub) -> None:
+    """The subcommands scenes, show, validate: read a scene, run nothing."""
     q = sub.add_parser("scenes", help="list the built-in scenes")
     q.set_defaults(func=_cmd_scenes)
 
@@ -382,6 +389,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file")
     q.set_defaults(func=_cmd_validate)
 
+
+def _add_run_commands(sub) -> None:
+    """The subcommands simulate, fit, study: the commands that compute."""
     q = sub.add_parser("simulate", help="simulate a scene and write images, catalogue and summary")
     q.add_argument("scene", metavar="SCENE", help="built-in scene name or path to a .toml file")
     q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
@@ -418,6 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--quiet", "-q", action="store_true", help="no progress output")
     q.set_defaults(func=_cmd_study)
 
+
+def _add_run_dir_commands(sub) -> None:
+    """The subcommands plot, analyze: read a finished run's directory."""
     q = sub.add_parser("plot", help="make the figures of a finished run")
     q.add_argument("dir", metavar="DIR", help="output directory of `clumpylen simulate`")
     q.set_defaults(func=_cmd_plot)
@@ -426,7 +439,6 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("dir", metavar="DIR", help="output directory of `clumpylen simulate`")
     q.add_argument("--snr-threshold", type=float, help="detection threshold in S/N (default: the analysis module's)")
     q.set_defaults(func=_cmd_analyze)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:

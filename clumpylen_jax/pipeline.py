@@ -423,86 +423,117 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)
-    model = prep.model
-    lensed = model.lensed
-    source = prep.source
     out.mkdir(parents=True, exist_ok=True)
     (out / "bands").mkdir(exist_ok=True)
-    stages_ran = ["population" if scene.source.clumps is not None else None, "photometry",
-                  "lensing" if lensed else None]
-
     with prog.stage("render (compile + run)"):
-        key = jax.random.key(scene.seed)
-        if scene.output.noise:
-            noisy, clean, var = _jit_call(model, 'observe', source, key)
-        else:
-            clean = _jit_call(model, 'noiseless', source)
-            noisy, var = clean, model.variances(clean)
-        noisy = [np.asarray(x) for x in noisy]
-        clean = [np.asarray(x) for x in clean]
-        var = [np.asarray(x) for x in var]
-
-    unlensed = [None] * len(scene.bands)
-    unl_model = None
+        noisy, clean, var = _render_bands(prep)
+    unlensed, unl_model = [None] * len(scene.bands), None
     if scene.output.unlensed:
         with prog.stage("unlensed images"):
-            unl_model = model_mod.build_model(source, prep.bands, lens=None,
-                                              accuracy=prep.accuracy, dtype=prep.dtype)
-            unlensed = [np.asarray(x) for x in _jit_call(unl_model, 'band_images', source)]
-
-    summary_bands = {}
-    grids = {}
+            unlensed, unl_model = _render_unlensed(prep)
+    summary_bands, grids = {}, {}
     for k, b in enumerate(scene.bands):
         with prog.stage(f"write {b.filter}"):
-            lay = model.layouts[k]
-            grids[b.filter] = lay.grid
-            wcs = _wcs_for(lay.grid, scene)
-            unl_wcs = None
-            if unlensed[k] is not None:
-                unl_wcs = _wcs_for(unl_model.layouts[k].grid, scene)
-            header = _header(scene, b, prep.zeropoints[b.filter], scene.seed)
-            if b.exptime_s is None:
-                header["NOISEMOD"] = "none: no exposure time given"
-            io.write_band_fits(out / "bands" / f"{b.filter}.fits", noisy[k], noiseless=clean[k],
-                               variance=var[k], unlensed=unlensed[k], header=header, wcs=wcs,
-                               unlensed_wcs=unl_wcs)
-            src_counts = float(np.sum(clean[k]) - lay.sky_counts_per_s * clean[k].size)
-            summary_bands[b.filter] = {
-                "total_counts_per_s": src_counts,
-                "total_counts": src_counts * float(b.exptime_s or 0.0),
-                "shape": list(clean[k].shape), "pixel_arcsec": b.pixel_arcsec,
-                "zeropoint_ab": prep.zeropoints[b.filter],
-                "psf": b.psf, "psf_effective": prep.bands[k].psf_effective,
-            }
-
+            grids[b.filter] = prep.model.layouts[k].grid
+            summary_bands[b.filter] = _write_band(out, prep, k, noisy[k], clean[k], var[k],
+                                                  unlensed[k], unl_model)
     with prog.stage("colour composites"):
-        shown = noisy if scene.output.noise else clean
-        images = {b.filter: shown[k] - model.layouts[k].sky_counts_per_s
-                  for k, b in enumerate(scene.bands)}
-        truth = {b.filter: clean[k] - model.layouts[k].sky_counts_per_s
-                 for k, b in enumerate(scene.bands)}
-        for triple in scene.output.rgb:
-            # stretch and colour balance from the noiseless light (faint arcs not set by the noise)
-            g0 = grids[triple[0]]
-            rgbimage.save_composite(out / f"rgb_{'-'.join(triple)}.png", _rgb_channels(images, grids, triple),
-                                    rgbimage.extent_of_grid(g0), reference=_rgb_channels(truth, grids, triple),
-                                    wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
-
+        _write_composites(out, prep, noisy if scene.output.noise else clean, clean, grids)
     with prog.stage("high-resolution images"):
         hr_info = _write_hr(prep, out) if scene.output.hr else None
-
     with prog.stage("catalogue"):
-        table = prep.catalog
-        if table is not None:
-            if len(table) and lensed:   # every source_mode (linearised clumps too)
-                table["magnification"] = np.asarray(_jit_call(model, 'clump_magnifications', source))
-            else:
-                table["magnification"] = np.full(len(table), 1.0 if not lensed else np.nan)
-            from .preflight import smear_flags
-            table["flag"] = smear_flags(model, table, scene.render.source_pixel_arcsec)
-            io.write_catalog(out / "catalog.ecsv", table)
+        table = _write_catalogue(out, prep)
+    summary = _summary(prep, summary_bands, table, hr_info)
+    summary["timings_s"] = dict(prog.timings, total=round(time.perf_counter() - t_start, 3))
+    summary["timings_split_s"] = prog.clock.split()
+    summary["accuracy"] = dataclasses.asdict(prep.accuracy)
+    io.write_json(out / "summary.json", summary)
+    return summary
 
-    summary = {
+
+def _render_bands(prep: Prepared):
+    """(noisy, noiseless, variance) images per band [counts/s], as numpy arrays; without
+    noise the 'noisy' images are the noiseless ones."""
+    scene, model, source = prep.scene, prep.model, prep.source
+    key = jax.random.key(scene.seed)
+    if scene.output.noise:
+        noisy, clean, var = _jit_call(model, 'observe', source, key)
+    else:
+        clean = _jit_call(model, 'noiseless', source)
+        noisy, var = clean, model.variances(clean)
+    noisy = [np.asarray(x) for x in noisy]
+    clean = [np.asarray(x) for x in clean]
+    var = [np.asarray(x) for x in var]
+    return noisy, clean, var
+
+
+def _render_unlensed(prep: Prepared):
+    """(images per band [counts/s], their model): the source without the lens."""
+    unl_model = model_mod.build_model(prep.source, prep.bands, lens=None,
+                                      accuracy=prep.accuracy, dtype=prep.dtype)
+    return [np.asarray(x) for x in _jit_call(unl_model, 'band_images', prep.source)], unl_model
+
+
+def _write_band(out: Path, prep: Prepared, k: int, noisy, clean, var, unlensed, unl_model) -> dict:
+    """Write bands/<filter>.fits of band k; returns its entry of summary.json's "bands"."""
+    scene, b = prep.scene, prep.scene.bands[k]
+    lay = prep.model.layouts[k]
+    wcs = _wcs_for(lay.grid, scene)
+    unl_wcs = None
+    if unlensed is not None:
+        unl_wcs = _wcs_for(unl_model.layouts[k].grid, scene)
+    header = _header(scene, b, prep.zeropoints[b.filter], scene.seed)
+    if b.exptime_s is None:
+        header["NOISEMOD"] = "none: no exposure time given"
+    io.write_band_fits(out / "bands" / f"{b.filter}.fits", noisy, noiseless=clean,
+                       variance=var, unlensed=unlensed, header=header, wcs=wcs,
+                       unlensed_wcs=unl_wcs)
+    src_counts = float(np.sum(clean) - lay.sky_counts_per_s * clean.size)
+    return {
+        "total_counts_per_s": src_counts,
+        "total_counts": src_counts * float(b.exptime_s or 0.0),
+        "shape": list(clean.shape), "pixel_arcsec": b.pixel_arcsec,
+        "zeropoint_ab": prep.zeropoints[b.filter],
+        "psf": b.psf, "psf_effective": prep.bands[k].psf_effective,
+    }
+
+
+def _write_composites(out: Path, prep: Prepared, shown, clean, grids) -> None:
+    """rgb_<F1-F2-F3>.png of the shown images (noisy, or noiseless without noise), sky removed."""
+    scene, model = prep.scene, prep.model
+    images = {b.filter: shown[k] - model.layouts[k].sky_counts_per_s
+              for k, b in enumerate(scene.bands)}
+    truth = {b.filter: clean[k] - model.layouts[k].sky_counts_per_s
+             for k, b in enumerate(scene.bands)}
+    for triple in scene.output.rgb:
+        # stretch and colour balance from the noiseless light (faint arcs not set by the noise)
+        g0 = grids[triple[0]]
+        rgbimage.save_composite(out / f"rgb_{'-'.join(triple)}.png", _rgb_channels(images, grids, triple),
+                                rgbimage.extent_of_grid(g0), reference=_rgb_channels(truth, grids, triple),
+                                wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
+
+
+def _write_catalogue(out: Path, prep: Prepared):
+    """catalog.ecsv with each clump's magnification and smear flag; the table (None: no clumps)."""
+    model, table = prep.model, prep.catalog
+    if table is not None:
+        if len(table) and model.lensed:   # every source_mode (linearised clumps too)
+            table["magnification"] = np.asarray(_jit_call(model, 'clump_magnifications', prep.source))
+        else:
+            table["magnification"] = np.full(len(table), 1.0 if not model.lensed else np.nan)
+        from .preflight import smear_flags
+        table["flag"] = smear_flags(model, table, prep.scene.render.source_pixel_arcsec)
+        io.write_catalog(out / "catalog.ecsv", table)
+    return table
+
+
+def _summary(prep: Prepared, summary_bands: dict, table, hr_info) -> dict:
+    """summary.json's content up to the timings (which the caller adds once the run is done)."""
+    scene, model = prep.scene, prep.model
+    lensed = model.lensed
+    stages_ran = ["population" if scene.source.clumps is not None else None, "photometry",
+                  "lensing" if lensed else None]
+    return {
         "scene": scene_mod.resolved_dict(scene),
         "seed": scene.seed,
         "version": __version__,
@@ -520,12 +551,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
                   (["unlensed"] if scene.output.unlensed else []) +
                   [f"rgb:{'-'.join(t)}" for t in scene.output.rgb] +
                   (["hr"] if scene.output.hr else []),
-        "timings_s": dict(prog.timings, total=round(time.perf_counter() - t_start, 3)),
-        "timings_split_s": prog.clock.split(),
-        "accuracy": dataclasses.asdict(prep.accuracy),
     }
-    io.write_json(out / "summary.json", summary)
-    return summary
 
 
 def _write_hr(prep: Prepared, out: Path):

@@ -489,36 +489,44 @@ def sample_positions(
     w1, w2 = (x1 - x0) / nc, (y1 - y0) / nc
     _probe_envelope(rng, height, host_brightness, x0, y0, w1, w2)
     for _ in range(_MAX_RESTARTS):
-        cdf = np.cumsum(height.ravel())
-        cdf /= cdf[-1]
-        acc1, acc2 = [], []
-        got = proposed = 0
-        violated = False
-        while got < n:
-            # Batch sized from the acceptance rate seen so far (the envelope's
-            # mass over the light's), so that a low rate does not mean many calls.
-            rate = max(got / proposed, 1e-3) if proposed else 0.5
-            m = int(min(1.2 * (n - got) / rate + 256, 2_000_000))
-            proposed += m
-            cell = np.minimum(np.searchsorted(cdf, rng.random(m), side="right"), cdf.size - 1)
-            i1, i2 = np.divmod(cell, nc)
-            b1 = x0 + (i1 + rng.random(m)) * w1
-            b2 = y0 + (i2 + rng.random(m)) * w2
-            f = _brightness(host_brightness, b1, b2)
-            h = height[i1, i2]
-            bad = f > h
-            if np.any(bad):
-                # Raise the offending cells well above what was seen, then redo.
-                np.maximum.at(height, (i1[bad], i2[bad]), 2.0 * f[bad])
-                violated = True
-                break
-            keep = rng.random(m) * h < f
-            acc1.append(b1[keep])
-            acc2.append(b2[keep])
-            got += int(keep.sum())
-        if not violated:
-            return np.concatenate(acc1)[:n], np.concatenate(acc2)[:n]
+        drawn = _rejection_pass(rng, n, height, host_brightness, x0, y0, w1, w2)
+        if drawn is not None:
+            return drawn
     raise RuntimeError("sample_positions: the rejection envelope kept being violated; is host_brightness bounded?")
+
+
+def _rejection_pass(rng, n, height, host_brightness, x0, y0, w1, w2):
+    """One rejection-sampling pass under the envelope ``height`` (cells w1 x w2 arcsec
+    from the box corner (x0, y0) arcsec): n positions (β1, β2) [arcsec], or None when a
+    candidate exceeded its cell's height; those cells are then raised in place (to 2 x
+    the brightness seen) and the caller restarts the whole draw."""
+    nc = height.shape[1]
+    cdf = np.cumsum(height.ravel())
+    cdf /= cdf[-1]
+    acc1, acc2 = [], []
+    got = proposed = 0
+    while got < n:
+        # Batch sized from the acceptance rate seen so far (the envelope's
+        # mass over the light's), so that a low rate does not mean many calls.
+        rate = max(got / proposed, 1e-3) if proposed else 0.5
+        m = int(min(1.2 * (n - got) / rate + 256, 2_000_000))
+        proposed += m
+        cell = np.minimum(np.searchsorted(cdf, rng.random(m), side="right"), cdf.size - 1)
+        i1, i2 = np.divmod(cell, nc)
+        b1 = x0 + (i1 + rng.random(m)) * w1
+        b2 = y0 + (i2 + rng.random(m)) * w2
+        f = _brightness(host_brightness, b1, b2)
+        h = height[i1, i2]
+        bad = f > h
+        if np.any(bad):
+            # Raise the offending cells well above what was seen, then redo.
+            np.maximum.at(height, (i1[bad], i2[bad]), 2.0 * f[bad])
+            return None
+        keep = rng.random(m) * h < f
+        acc1.append(b1[keep])
+        acc2.append(b2[keep])
+        got += int(keep.sum())
+    return np.concatenate(acc1)[:n], np.concatenate(acc2)[:n]
 
 
 def _probe_envelope(rng, height, host_brightness, x0, y0, w1, w2) -> None:
@@ -596,43 +604,12 @@ def sample_clumps(
     Draw order (fixed, so that a seed reproduces a catalogue): masses, sizes,
     ages, axis ratios, position angles, positions.
     """
-    config.validate()
-    _finite_positive(host_mass_msun, "host_mass_msun")
-    require(
-        _is_real(mass_fraction) and 0.0 <= mass_fraction <= 1.0,
-        "source.clumps.mass_fraction",
-        mass_fraction,
-        "a number in [0, 1]",
-    )
-    _finite_positive(arcsec_per_pc, "arcsec_per_pc")
-    _validate_bbox(bbox_arcsec)
-    require(callable(host_brightness), "host_brightness", host_brightness, "a callable (beta1, beta2) -> brightness")
-
-    budget = mass_fraction * host_mass_msun
-    mass = sample_cmf_masses(
-        rng,
-        budget,
-        slope=config.cmf_slope,
-        m_cut_msun=config.cmf_m_cut_msun,
-        delta=config.cmf_delta,
-        gamma=config.cmf_gamma,
-        m_min_msun=config.cmf_m_min_msun,
-        m_max_msun=config.cmf_m_max_msun,
-        host_mass_msun=host_mass_msun,
-    )
+    _check_sample_inputs(config, host_mass_msun, mass_fraction, arcsec_per_pc, bbox_arcsec,
+                         host_brightness)
+    # the draw order is part of the seed's contract (docstring): keep these calls in order
+    mass = _sample_masses(rng, mass_fraction * host_mass_msun, host_mass_msun, config)
     n = mass.size
-    re_pc = sample_sizes_pc(
-        rng,
-        mass,
-        norm_pc=config.size_norm_pc,
-        slope=config.size_slope,
-        pivot_msun=config.size_pivot_msun,
-        scatter_ln=config.size_scatter_ln,
-    )
-    age = sample_ages_myr(rng, n, slope=config.age_slope, min_myr=config.age_min_myr, max_myr=config.age_max_myr)
-    q_min, q_max = config.q_range
-    q = q_min + (q_max - q_min) * rng.random(n)
-    pa = math.pi * rng.random(n)
+    re_pc, age, q, pa = _sample_shapes(rng, mass, config)
     beta1, beta2 = sample_positions(rng, n, host_brightness, bbox_arcsec)
 
     columns = {
@@ -647,14 +624,67 @@ def sample_clumps(
         "age_myr": age,
         "sersic_n": np.full(n, float(config.sersic_n)),
     }
-    meta = {
+    return _make_table(columns, _mass_meta(host_mass_msun, mass, mass_fraction, arcsec_per_pc))
+
+
+def _mass_meta(host_mass_msun, mass_msun, mass_fraction, arcsec_per_pc) -> dict:
+    """The catalogue's meta: host mass, what the clumps left of it, their budget [M☉]."""
+    return {
         "host_mass_msun": float(host_mass_msun),
-        "host_mass_remaining_msun": float(max(host_mass_msun - mass.sum(), 0.0)),
-        "clump_mass_budget_msun": float(budget),
+        "host_mass_remaining_msun": float(max(host_mass_msun - mass_msun.sum(), 0.0)),
+        "clump_mass_budget_msun": float(mass_fraction * host_mass_msun),
         "mass_fraction": float(mass_fraction),
         "arcsec_per_pc": float(arcsec_per_pc),
     }
-    return _make_table(columns, meta)
+
+
+def _check_sample_inputs(config, host_mass_msun, mass_fraction, arcsec_per_pc, bbox_arcsec,
+                         host_brightness) -> None:
+    """Refuse bad `sample_clumps` arguments (ConfigError naming the setting), in that order."""
+    config.validate()
+    _finite_positive(host_mass_msun, "host_mass_msun")
+    require(
+        _is_real(mass_fraction) and 0.0 <= mass_fraction <= 1.0,
+        "source.clumps.mass_fraction",
+        mass_fraction,
+        "a number in [0, 1]",
+    )
+    _finite_positive(arcsec_per_pc, "arcsec_per_pc")
+    _validate_bbox(bbox_arcsec)
+    require(callable(host_brightness), "host_brightness", host_brightness, "a callable (beta1, beta2) -> brightness")
+
+
+def _sample_masses(rng, budget_msun, host_mass_msun, config: ClumpConfig) -> np.ndarray:
+    """Clump masses [M☉] from the configured CMF until they fill budget_msun."""
+    return sample_cmf_masses(
+        rng,
+        budget_msun,
+        slope=config.cmf_slope,
+        m_cut_msun=config.cmf_m_cut_msun,
+        delta=config.cmf_delta,
+        gamma=config.cmf_gamma,
+        m_min_msun=config.cmf_m_min_msun,
+        m_max_msun=config.cmf_m_max_msun,
+        host_mass_msun=host_mass_msun,
+    )
+
+
+def _sample_shapes(rng, mass_msun, config: ClumpConfig):
+    """(R_e [pc], age [Myr], axis ratio q, PA [rad]) per clump, drawn in that order."""
+    n = mass_msun.size
+    re_pc = sample_sizes_pc(
+        rng,
+        mass_msun,
+        norm_pc=config.size_norm_pc,
+        slope=config.size_slope,
+        pivot_msun=config.size_pivot_msun,
+        scatter_ln=config.size_scatter_ln,
+    )
+    age = sample_ages_myr(rng, n, slope=config.age_slope, min_myr=config.age_min_myr, max_myr=config.age_max_myr)
+    q_min, q_max = config.q_range
+    q = q_min + (q_max - q_min) * rng.random(n)
+    pa = math.pi * rng.random(n)
+    return re_pc, age, q, pa
 
 
 # ----------------------------------------------------------------------------
@@ -686,23 +716,53 @@ def read_clump_catalog(
     missing columns and invalid values raise ConfigError naming the column.
     """
     path = Path(path)
+    table = _read_table(path, setting)
+    names = set(table.colnames)
+    mag_cols = [c for c in table.colnames if c.startswith("mag_")]
+    _require_catalog_columns(names, mag_cols, arcsec_per_pc, bands, setting)
+    n = len(table)
+    # the checks below run in the columns' order: a file with several faults names the first
+    out: dict = {}
+    out["beta1_arcsec"] = _catalog_column(table, "beta1_arcsec", setting)
+    out["beta2_arcsec"] = _catalog_column(table, "beta2_arcsec", setting)
+    out["q"] = _bounded_column(table, "q", setting, lambda q: (q > 0) & (q <= 1), "0 < q <= 1")
+    out["pa_rad"] = _catalog_column(table, "pa_rad", setting)
+    out["re_pc"], out["re_arcsec"] = _catalog_sizes(table, names, arcsec_per_pc, setting)
+    for name in ("mass_msun", "age_myr"):
+        if name in names:
+            out[name] = _bounded_column(table, name, setting, lambda v: v > 0, "values > 0")
+        else:
+            out[name] = np.full(n, np.nan)  # flux comes from the mag_ columns
+    if "sersic_n" in names:
+        out["sersic_n"] = _bounded_column(table, "sersic_n", setting,
+                                          lambda sn: (sn >= 0.2) & (sn <= 10), "values in [0.2, 10]")
+    else:
+        out["sersic_n"] = np.full(n, float(sersic_n_default))
+    out["id"] = _catalog_ids(table, names, setting)
+
+    result = _make_table(out, {"source_file": str(path)})
+    _add_mag_columns(result, table, mag_cols, setting)
+    return result
+
+
+def _read_table(path: Path, setting: str) -> Table:
+    """The catalogue file as a Table: FITS by its ending, else ECSV."""
     require(path.is_file(), setting, str(path), "an existing ECSV or FITS file")
     suffix = "".join(path.suffixes).lower()
     try:
         if suffix.endswith((".fits", ".fit", ".fits.gz", ".fts")):
-            table = Table.read(path, format="fits")
-        else:
-            table = Table.read(path, format="ascii.ecsv")
+            return Table.read(path, format="fits")
+        return Table.read(path, format="ascii.ecsv")
     except Exception as exc:  # astropy raises many types for bad files
         raise ConfigError(setting, str(path), f"a readable ECSV or FITS table ({exc})") from exc
 
-    names = set(table.colnames)
-    mag_cols = [c for c in table.colnames if c.startswith("mag_")]
+
+def _require_catalog_columns(names: set, mag_cols: list, arcsec_per_pc, bands, setting: str) -> None:
+    """Refuse a catalogue without the columns SCENE.md asks for (ConfigError naming one)."""
     for col in _REQUIRED_ALWAYS:
         require(col in names, f"{setting}:{col}", "missing", "a column named " + col)
-    has_re_arcsec = "re_arcsec" in names
     require(
-        has_re_arcsec or ("re_pc" in names and arcsec_per_pc is not None),
+        "re_arcsec" in names or ("re_pc" in names and arcsec_per_pc is not None),
         f"{setting}:re_arcsec",
         "missing",
         "a re_arcsec column (or re_pc plus the source redshift's arcsec_per_pc)",
@@ -718,67 +778,63 @@ def read_clump_catalog(
         for band in bands:
             require(f"mag_{band}" in names, f"{setting}:mag_{band}", "missing", f"a mag_{band} column (or mass_msun and age_myr)")
 
-    n = len(table)
 
-    def col(name) -> np.ndarray:
-        try:
-            values = np.asarray(table[name], dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{setting}:{name}", "non-numeric", "numbers") from exc
-        require(np.all(np.isfinite(values)), f"{setting}:{name}", "NaN or inf", "finite values")
-        return values
+def _catalog_column(table: Table, name: str, setting: str) -> np.ndarray:
+    """A column as finite floats (ConfigError naming it otherwise)."""
+    try:
+        values = np.asarray(table[name], dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{setting}:{name}", "non-numeric", "numbers") from exc
+    require(np.all(np.isfinite(values)), f"{setting}:{name}", "NaN or inf", "finite values")
+    return values
 
-    out: dict = {}
-    out["beta1_arcsec"] = col("beta1_arcsec")
-    out["beta2_arcsec"] = col("beta2_arcsec")
-    q = col("q")
-    require(np.all((q > 0) & (q <= 1)), f"{setting}:q", _first_bad(q, (q > 0) & (q <= 1)), "0 < q <= 1")
-    out["q"] = q
-    out["pa_rad"] = col("pa_rad")
-    if has_re_arcsec:
-        re_arcsec = col("re_arcsec")
-        require(np.all(re_arcsec > 0), f"{setting}:re_arcsec", _first_bad(re_arcsec, re_arcsec > 0), "values > 0")
+
+def _bounded_column(table: Table, name: str, setting: str, ok, expected: str) -> np.ndarray:
+    """`_catalog_column` whose every value passes ok(values) (a mask); the error shows the first
+    that does not."""
+    values = _catalog_column(table, name, setting)
+    good = ok(values)
+    require(np.all(good), f"{setting}:{name}", _first_bad(values, good), expected)
+    return values
+
+
+def _catalog_sizes(table: Table, names: set, arcsec_per_pc, setting: str):
+    """(re_pc, re_arcsec) per clump: each from its column, else from the other through
+    arcsec_per_pc; re_pc NaN where neither it nor the scale is given."""
+    positive = lambda v: v > 0  # noqa: E731
+    if "re_arcsec" in names:
+        re_arcsec = _bounded_column(table, "re_arcsec", setting, positive, "values > 0")
     if "re_pc" in names:
-        re_pc = col("re_pc")
-        require(np.all(re_pc > 0), f"{setting}:re_pc", _first_bad(re_pc, re_pc > 0), "values > 0")
+        re_pc = _bounded_column(table, "re_pc", setting, positive, "values > 0")
     if arcsec_per_pc is not None:
         _finite_positive(arcsec_per_pc, "arcsec_per_pc")
-    if not has_re_arcsec:
+    if "re_arcsec" not in names:
         re_arcsec = re_pc * arcsec_per_pc
     if "re_pc" not in names:
-        re_pc = re_arcsec / arcsec_per_pc if arcsec_per_pc is not None else np.full(n, np.nan)
-    out["re_pc"], out["re_arcsec"] = re_pc, re_arcsec
-    for name in ("mass_msun", "age_myr"):
-        if name in names:
-            v = col(name)
-            require(np.all(v > 0), f"{setting}:{name}", _first_bad(v, v > 0), "values > 0")
-            out[name] = v
-        else:
-            out[name] = np.full(n, np.nan)  # flux comes from the mag_ columns
-    if "sersic_n" in names:
-        sn = col("sersic_n")
-        require(np.all((sn >= 0.2) & (sn <= 10)), f"{setting}:sersic_n", _first_bad(sn, (sn >= 0.2) & (sn <= 10)), "values in [0.2, 10]")
-        out["sersic_n"] = sn
-    else:
-        out["sersic_n"] = np.full(n, float(sersic_n_default))
-    if "id" in names:
-        ids = np.asarray(table["id"])
-        require(np.issubdtype(ids.dtype, np.integer), f"{setting}:id", str(ids.dtype), "integers")
-        require(np.unique(ids).size == n, f"{setting}:id", "duplicates", "unique ids")
-        out["id"] = ids.astype(np.int64)
-    else:
-        out["id"] = np.arange(n, dtype=np.int64)
+        re_pc = re_arcsec / arcsec_per_pc if arcsec_per_pc is not None else np.full(len(table), np.nan)
+    return re_pc, re_arcsec
 
-    result = _make_table(out, {"source_file": str(path)})
+
+def _catalog_ids(table: Table, names: set, setting: str) -> np.ndarray:
+    """The id column (unique integers), or 0..N−1 without one."""
+    n = len(table)
+    if "id" not in names:
+        return np.arange(n, dtype=np.int64)
+    ids = np.asarray(table["id"])
+    require(np.issubdtype(ids.dtype, np.integer), f"{setting}:id", str(ids.dtype), "integers")
+    require(np.unique(ids).size == n, f"{setting}:id", "duplicates", "unique ids")
+    return ids.astype(np.int64)
+
+
+def _add_mag_columns(result: Table, table: Table, mag_cols: list, setting: str) -> None:
+    """Copy the mag_<FILTER> columns (AB magnitudes, checked against the scene's range)."""
     from .scene import AB_MAG_RANGE
     lo, hi = AB_MAG_RANGE
     for name in mag_cols:
-        m = col(name)
-        ok = (m >= lo) & (m <= hi)
-        require(np.all(ok), f"{setting}:{name}", _first_bad(m, ok), f"AB magnitudes in [{lo:g}, {hi:g}]")
+        m = _bounded_column(table, name, setting, lambda v: (v >= lo) & (v <= hi),
+                            f"AB magnitudes in [{lo:g}, {hi:g}]")
         result[name] = m
         result[name].unit = u.mag  # AB
-    return result
 
 
 def _first_bad(values: np.ndarray, ok: np.ndarray):

@@ -592,8 +592,6 @@ def diffraction_psf(
     The cache key is a hash of every input (pupil model version, throughput
     curve, sampling); files are written atomically, so concurrent runs are safe.
     """
-    from .filters import load_filter
-
     telescope = _telescope(instrument)
     require(
         isinstance(pixel_arcsec, (int, float, np.floating)) and math.isfinite(pixel_arcsec) and pixel_arcsec > 0,
@@ -602,15 +600,39 @@ def diffraction_psf(
         "a positive pixel scale in arcsec",
     )
     require(isinstance(n_wavelengths, int) and 1 <= n_wavelengths <= 64, "n_wavelengths", n_wavelengths, "an integer in [1, 64]")
-    # A bare band name is qualified with the instrument so that the curve is the
-    # instrument's own (filters.load_filter accepts "JWST/NIRCam F200W").
-    is_bare = isinstance(filter_name, str) and "/" not in filter_name and " " not in filter_name.strip()
-    band = load_filter(f"{instrument} {filter_name.strip()}" if is_bare else filter_name)
+    band = _instrument_filter(instrument, filter_name)
     diameter_m = TELESCOPE_DIAMETER_M[telescope]
     waves_m, weights = _band_sampling(np.asarray(band.wavelength_aa), np.asarray(band.throughput), n_wavelengths)
     lam_over_d_arcsec = float(band.pivot_wavelength_aa) * 1e-10 / diameter_m * ARCSEC_PER_RAD
-    if size_arcsec is None:
-        size_arcsec = 32.0 * lam_over_d_arcsec
+    n_pix = _psf_pixels(32.0 * lam_over_d_arcsec if size_arcsec is None else size_arcsec, pixel_arcsec)
+    sub = _subsampling(pixel_arcsec, waves_m, diameter_m)
+
+    key = _diffraction_key(telescope, pupil_npix, waves_m, weights, pixel_arcsec, n_pix, sub)
+    source = f"poppy diffraction PSF {telescope} {band.name} ({len(waves_m)} wavelengths)"
+    cache_path = _psf_cache_path(cache_dir, telescope, band.name, key)
+    if cache_path is not None and cache_path.is_file():
+        try:
+            return PSF(np.load(cache_path), pixel_arcsec, False, source + " [cached]", None)
+        except (OSError, ValueError, ConfigError):
+            pass  # a corrupt cache file is recomputed and replaced
+    array = _compute_diffraction(telescope, waves_m, weights, pixel_arcsec, n_pix, sub, pupil_npix)
+    if cache_path is not None:
+        _atomic_save_npy(cache_path, array)
+    return PSF(array, pixel_arcsec, False, source, None)
+
+
+def _instrument_filter(instrument: str, filter_name):
+    """The filter curve of `filter_name` (a band name or a ``filters.Filter``) on `instrument`."""
+    from .filters import load_filter
+
+    # A bare band name is qualified with the instrument so that the curve is the
+    # instrument's own (filters.load_filter accepts "JWST/NIRCam F200W").
+    is_bare = isinstance(filter_name, str) and "/" not in filter_name and " " not in filter_name.strip()
+    return load_filter(f"{instrument} {filter_name.strip()}" if is_bare else filter_name)
+
+
+def _psf_pixels(size_arcsec, pixel_arcsec: float) -> int:
+    """Pixels across a PSF of field size_arcsec at pixel_arcsec, rounded up to odd (≤ 2049)."""
     require(
         isinstance(size_arcsec, (int, float, np.floating)) and math.isfinite(size_arcsec) and size_arcsec > 0,
         "psf_size_arcsec",
@@ -620,11 +642,29 @@ def diffraction_psf(
     n_pix = int(math.ceil(size_arcsec / pixel_arcsec - 1e-9))
     n_pix += 1 - n_pix % 2
     require(n_pix <= 2049, "psf_size_arcsec", size_arcsec, f"at most 2049 pixels of {pixel_arcsec} arcsec")
-    # Sub-sample so that each computed point is ≤ λ_min/(4D): the binned values
-    # are then pixel integrals, not point samples, even for coarse pixels.
-    lam_min_over_d = waves_m.min() / diameter_m * ARCSEC_PER_RAD
-    sub = max(1, int(math.ceil(pixel_arcsec / (lam_min_over_d / 4.0) - 1e-9)))
+    return n_pix
 
+
+def _subsampling(pixel_arcsec: float, waves_m, diameter_m: float) -> int:
+    """Computed points per pixel side, so that each is ≤ λ_min/(4D): the binned values
+    are then pixel integrals, not point samples, even for coarse pixels."""
+    lam_min_over_d = waves_m.min() / diameter_m * ARCSEC_PER_RAD
+    return max(1, int(math.ceil(pixel_arcsec / (lam_min_over_d / 4.0) - 1e-9)))
+
+
+def _psf_cache_path(cache_dir, telescope: str, band_name: str, key: str) -> Path | None:
+    """The PSF's cache file; None when caching is off (cache_dir False, or None and
+    `default_cache_dir()` False)."""
+    if cache_dir is None:
+        cache_dir = default_cache_dir()
+    if cache_dir is False:
+        return None
+    return Path(cache_dir) / f"{telescope}_{band_name}_{key}.npy"
+
+
+def _diffraction_key(telescope, pupil_npix, waves_m, weights, pixel_arcsec, n_pix, sub) -> str:
+    """Cache key of a diffraction PSF: a hash of every input (pupil model version, sampled
+    wavelengths [m] and weights to 10 digits, pixels, sub-sampling, poppy version)."""
     key_data = {
         "telescope": telescope,
         "pupil": _PUPIL_MODEL_VERSION,
@@ -636,22 +676,7 @@ def diffraction_psf(
         "sub": sub,
         "poppy": _poppy_version(),
     }
-    key = hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()[:24]
-    source = f"poppy diffraction PSF {telescope} {band.name} ({len(waves_m)} wavelengths)"
-    cache_path = None
-    if cache_dir is None:
-        cache_dir = default_cache_dir()
-    if cache_dir is not False:
-        cache_path = Path(cache_dir) / f"{telescope}_{band.name}_{key}.npy"
-        if cache_path.is_file():
-            try:
-                return PSF(np.load(cache_path), pixel_arcsec, False, source + " [cached]", None)
-            except (OSError, ValueError, ConfigError):
-                pass  # a corrupt cache file is recomputed and replaced
-    array = _compute_diffraction(telescope, waves_m, weights, pixel_arcsec, n_pix, sub, pupil_npix)
-    if cache_path is not None:
-        _atomic_save_npy(cache_path, array)
-    return PSF(array, pixel_arcsec, False, source, None)
+    return hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()[:24]
 
 
 def _poppy_version() -> str:

@@ -124,38 +124,45 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
     nsigma, npixels: photutils detection settings.  match_radius_pix: matching radius.
     fisher: also compute the Fisher-forecast S/N of each injected clump.
     """
-    from ..model import Accuracy, build_model, source_extent
+    from ..model import Accuracy
 
     fluxes = np.atleast_1d(np.asarray(fluxes_counts_per_s, float))
     sizes = np.atleast_1d(np.asarray(sizes_arcsec, float))
     require(np.all(fluxes >= 0) and np.all(sizes > 0), "completeness grid", (fluxes, sizes),
             "fluxes ≥ 0 and sizes > 0")
     accuracy = accuracy or Accuracy()
-    nb = len(bands)
-    ratios = np.ones(nb) if flux_ratios is None else np.asarray(flux_ratios, float)
+    ratios = np.ones(len(bands)) if flux_ratios is None else np.asarray(flux_ratios, float)
     k_pos, k_noise = jax.random.split(key)
     if positions_arcsec is None:
-        center, _ = source_extent(base_source, accuracy.source_flux_fraction,
-                                  accuracy.stamp_flux_fraction)
-        r = (region_arcsec or 0.3) * np.sqrt(np.asarray(jax.random.uniform(k_pos, (n_trials,))))
-        phi = 2 * np.pi * np.asarray(jax.random.uniform(jax.random.fold_in(k_pos, 1), (n_trials,)))
-        positions_arcsec = center[None, :] + np.c_[r * np.cos(phi), r * np.sin(phi)]
+        positions_arcsec = _random_positions(base_source, accuracy, k_pos, n_trials, region_arcsec)
     pos = np.asarray(positions_arcsec, float).reshape(-1, 2)
     n_trials = pos.shape[0]
-
-    # one model for the grid: extent and stamps from clumps at every position at the largest size
-    cover = Clumps(jnp.asarray(pos), jnp.ones((n_trials, nb)), jnp.full(n_trials, sizes.max()),
-                   jnp.full(n_trials, float(clump_n)), jnp.full(n_trials, float(clump_q)),
-                   jnp.zeros(n_trials))
-    if base_source.clumps is not None and base_source.clumps.count > 0:
-        cover = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([jnp.asarray(a, float), b]),
-                                       base_source.clumps, cover)
-    model = build_model(Source(base_source.bulge, base_source.disk, cover), bands, lens=lens,
+    model = _grid_model(base_source, bands, pos, sizes.max(), clump_n, clump_q, lens=lens,
                         field_arcsec=field_arcsec, accuracy=accuracy)
-    lay = model.layouts[band]
+    sky = model.layouts[band].sky_counts_per_s
     base = base_source.astype(jnp.float64)
     n_base = 0 if base.clumps is None else base.clumps.count
 
+    render_b, iso = _injectors(model, base, ratios, clump_n, clump_q, band)
+    base_peaks = [image_peaks(np.asarray(_isolated_base_image(model, base, k, band)))
+                  for k in range(n_base)]
+    mult = np.zeros(n_base + 2, int)
+    comp, det, blend = _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks,
+                                       mult, nsigma=nsigma, npixels=npixels,
+                                       match_radius_pix=match_radius_pix)
+    shape = (fluxes.size, sizes.size)
+    snr_f = np.full(shape, np.nan)
+    snr_r = np.full(shape, np.nan)
+    if fisher:
+        snr_f, snr_r = _fisher_grid(model, base, pos, fluxes, sizes, ratios, clump_n, clump_q, band)
+    return CompletenessResult(fluxes, sizes, comp, det, blend, snr_f, snr_r, mult, pos,
+                              model.band_names[band])
+
+
+def _injectors(model, base, ratios, clump_n, clump_q, band):
+    """Two compiled functions, vmapped over trials, of (centre [arcsec], flux [counts/s in
+    `band`], R_e [arcsec]): render_b(…, key) → (noisy, variance) of base + the clump in
+    `band`; iso(…) → the clump's image alone (where its peaks are)."""
     def render(center, flux, re, nkey):
         src = _with_clump(base, center, flux * jnp.asarray(ratios), re, jnp.asarray(float(clump_n)),
                           jnp.asarray(float(clump_q)), jnp.asarray(0.0))
@@ -165,16 +172,18 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
     render_b = eqx.filter_jit(jax.vmap(render))
     iso = eqx.filter_jit(jax.vmap(lambda center, flux, re: _isolated_image(
         model, base, center, flux * jnp.asarray(ratios), re, clump_n, clump_q, band)))
-    base_peaks = []
-    for k in range(n_base):
-        img = np.asarray(_isolated_base_image(model, base, k, band))
-        base_peaks.append(image_peaks(img))
+    return render_b, iso
 
+
+def _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks, mult, *,
+                    nsigma, npixels, match_radius_pix):
+    """(completeness, detected, blended fractions) [n_flux, n_size]: every trial position of
+    every cell injected, observed with its own noise key, detected and scored."""
+    n_trials = pos.shape[0]
     shape = (fluxes.size, sizes.size)
     comp = np.zeros(shape)
     det = np.zeros(shape)
     blend = np.zeros(shape)
-    mult = np.zeros(n_base + 2, int)
     for i, f in enumerate(fluxes):
         for j, s in enumerate(sizes):
             keys = jax.random.split(jax.random.fold_in(k_noise, i * sizes.size + j), n_trials)
@@ -184,38 +193,66 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
             alone = np.asarray(iso(jnp.asarray(pos), fl, jnp.full(n_trials, max(s, 1e-9))))
             noisy, var = np.asarray(noisy), np.asarray(var)
             for t in range(n_trials):
-                seg = detect(noisy[t] - lay.sky_counts_per_s, np.sqrt(var[t]), nsigma=nsigma,
-                             npixels=npixels)
-                cents = _centroids(noisy[t] - lay.sky_counts_per_s, seg)
                 peaks = image_peaks(alone[t]) if f > 0 else np.zeros((0, 2), int)
-                owners = {}
-                for pk_list in base_peaks + [peaks]:
-                    for lab in {int(seg[r, c]) for r, c in pk_list if seg[r, c] > 0}:
-                        owners[lab] = owners.get(lab, 0) + 1
-                for lab in cents:
-                    mult[min(owners.get(lab, 0), mult.size - 1)] += 1
-                hit = matched = blended = False
-                for r, c in peaks:
-                    lab = int(seg[r, c])
-                    if lab == 0:
-                        continue
-                    hit = True
-                    blended |= owners.get(lab, 0) > 1
-                    cy, cx = cents[lab]
-                    matched |= np.hypot(cy - r, cx - c) <= match_radius_pix
+                hit, matched, blended = _score_trial(
+                    noisy[t] - sky, np.sqrt(var[t]), peaks, base_peaks, mult, nsigma=nsigma,
+                    npixels=npixels, match_radius_pix=match_radius_pix)
                 det[i, j] += hit
                 comp[i, j] += matched
                 blend[i, j] += blended
-    comp /= n_trials
-    det /= n_trials
-    blend /= n_trials
+    return comp / n_trials, det / n_trials, blend / n_trials
 
-    snr_f = np.full(shape, np.nan)
-    snr_r = np.full(shape, np.nan)
-    if fisher:
-        snr_f, snr_r = _fisher_grid(model, base, pos, fluxes, sizes, ratios, clump_n, clump_q, band)
-    return CompletenessResult(fluxes, sizes, comp, det, blend, snr_f, snr_r, mult, pos,
-                              model.band_names[band])
+
+def _random_positions(base_source, accuracy, key, n_trials, region_arcsec):
+    """n_trials source-plane positions [arcsec] uniform in a disc of radius region_arcsec
+    (default 0.3") about the base source's centre."""
+    from ..model import source_extent
+    center, _ = source_extent(base_source, accuracy.source_flux_fraction,
+                              accuracy.stamp_flux_fraction)
+    r = (region_arcsec or 0.3) * np.sqrt(np.asarray(jax.random.uniform(key, (n_trials,))))
+    phi = 2 * np.pi * np.asarray(jax.random.uniform(jax.random.fold_in(key, 1), (n_trials,)))
+    return center[None, :] + np.c_[r * np.cos(phi), r * np.sin(phi)]
+
+
+def _grid_model(base_source, bands, pos, re_max_arcsec, clump_n, clump_q, **build_kw):
+    """One scene model for the whole grid: its extent and stamps set by the base source plus
+    a clump at every trial position `pos` [n, 2] arcsec at the largest size re_max_arcsec."""
+    from ..model import build_model
+    n_trials, nb = pos.shape[0], len(bands)
+    cover = Clumps(jnp.asarray(pos), jnp.ones((n_trials, nb)), jnp.full(n_trials, re_max_arcsec),
+                   jnp.full(n_trials, float(clump_n)), jnp.full(n_trials, float(clump_q)),
+                   jnp.zeros(n_trials))
+    if base_source.clumps is not None and base_source.clumps.count > 0:
+        cover = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([jnp.asarray(a, float), b]),
+                                       base_source.clumps, cover)
+    return build_model(Source(base_source.bulge, base_source.disk, cover), bands, **build_kw)
+
+
+def _score_trial(image_minus_sky, sigma, peaks, base_peaks, mult, *, nsigma, npixels,
+                 match_radius_pix):
+    """Detect one trial's image and score the injected clump: (hit, matched, blended).
+
+    peaks: (row, col) of the injected clump's images; base_peaks: those of each base clump.
+    mult (histogram of true clumps per segment) is incremented in place for every segment.
+    """
+    seg = detect(image_minus_sky, sigma, nsigma=nsigma, npixels=npixels)
+    cents = _centroids(image_minus_sky, seg)
+    owners = {}
+    for pk_list in base_peaks + [peaks]:
+        for lab in {int(seg[r, c]) for r, c in pk_list if seg[r, c] > 0}:
+            owners[lab] = owners.get(lab, 0) + 1
+    for lab in cents:
+        mult[min(owners.get(lab, 0), mult.size - 1)] += 1
+    hit = matched = blended = False
+    for r, c in peaks:
+        lab = int(seg[r, c])
+        if lab == 0:
+            continue
+        hit = True
+        blended |= owners.get(lab, 0) > 1
+        cy, cx = cents[lab]
+        matched |= np.hypot(cy - r, cx - c) <= match_radius_pix
+    return hit, matched, blended
 
 
 def _isolated_image(model, base, center, flux_b, re, clump_n, clump_q, band):

@@ -107,12 +107,7 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
     data = make_data(scene_model, images, variances, mask, kind=likelihood)
     state0 = make_state(source_start, len(scene_model.layouts),
                         background_counts_per_s=background_start)
-    if free is None:
-        free = default_free(source_start, background=background)
-    elif background and "background" not in free:
-        free = {**dict(free), "background": True} if isinstance(free, dict) else \
-            list(free) + ["background"]
-    param = parametrize(state0, free)
+    param = parametrize(state0, _free_with_background(free, source_start, background))
     key = jax.random.key(seed)
     if n_starts > 1:
         res = fit_map_multistart(scene_model, data, param, key, n_starts=n_starts)
@@ -122,16 +117,8 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
     chains = None
     state, err = res.state, unc.err
     if method != "map":
-        opts = dict(mcmc or {})
-        if method == "emcee":
-            chains = run_emcee(scene_model, data, param, res.u, seed=seed, **opts)
-        else:
-            chains = run_nuts(scene_model, data, param, res.u, jax.random.fold_in(key, 1), **opts)
-        flat = chains.flat_x()
-        med = np.median(flat, axis=0)
-        state = param.state_from_physical(jnp.asarray(med))
-        err = flat.std(axis=0, ddof=1)
-        unc = Uncertainty(param.labels, jnp.asarray(med), jnp.asarray(np.cov(flat.T).reshape(med.size, med.size)))
+        chains, state, err, unc = _sample_posterior(method, scene_model, data, param, res.u, key,
+                                                    seed, mcmc)
     table = fit_table(state, errors_state(param, err), band_names=scene_model.band_names,
                       zeropoints_ab=zeropoints_ab)
     table.meta.update({"method": method, "likelihood": likelihood,
@@ -140,17 +127,50 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
                        "host": _host_meta(state, param, err)})
     files = []
     if out_dir is not None:
-        from ..io import atomic_write, write_catalog
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        write_catalog(out / "fit.ecsv", table)
-        files.append(out / "fit.ecsv")
-        if chains is not None:
-            with atomic_write(out / "chains.npz", "wb") as fh:
-                np.savez(fh, samples_x=chains.samples_x, samples_u=chains.samples_u,
-                         log_posterior=chains.log_posterior, labels=np.array(param.labels),
-                         acceptance=chains.acceptance, ess=chains.ess, rhat=chains.rhat,
-                         autocorr_time=chains.autocorr_time, method=method)
-            files.append(out / "chains.npz")
-        files += _write_residuals(out, scene_model, data, state)
+        files = _write_fit_files(Path(out_dir), table, chains, param, method, scene_model, data,
+                                 state)
     return FitRun(res, state, unc, table, chains, tuple(files))
+
+
+def _free_with_background(free, source_start, background):
+    """The `parametrize` mapping: the default one when free is None; with background, the
+    per-band level added to a given one that lacks it."""
+    if free is None:
+        return default_free(source_start, background=background)
+    if background and "background" not in free:
+        return {**dict(free), "background": True} if isinstance(free, dict) else \
+            list(free) + ["background"]
+    return free
+
+
+def _sample_posterior(method, scene_model, data, param, u_start, key, seed, mcmc):
+    """Run emcee or NUTS from the MAP point u_start; returns (chains, the state at the
+    posterior median, standard deviations, the sample covariance as an Uncertainty)."""
+    opts = dict(mcmc or {})
+    if method == "emcee":
+        chains = run_emcee(scene_model, data, param, u_start, seed=seed, **opts)
+    else:
+        chains = run_nuts(scene_model, data, param, u_start, jax.random.fold_in(key, 1), **opts)
+    flat = chains.flat_x()
+    med = np.median(flat, axis=0)
+    state = param.state_from_physical(jnp.asarray(med))
+    err = flat.std(axis=0, ddof=1)
+    unc = Uncertainty(param.labels, jnp.asarray(med), jnp.asarray(np.cov(flat.T).reshape(med.size, med.size)))
+    return chains, state, err, unc
+
+
+def _write_fit_files(out: Path, table, chains, param, method, scene_model, data, state) -> list:
+    """Write fit.ecsv, chains.npz (sampled methods) and residuals_<band>.fits in out; their paths."""
+    from ..io import atomic_write, write_catalog
+    out.mkdir(parents=True, exist_ok=True)
+    write_catalog(out / "fit.ecsv", table)
+    files = [out / "fit.ecsv"]
+    if chains is not None:
+        with atomic_write(out / "chains.npz", "wb") as fh:
+            np.savez(fh, samples_x=chains.samples_x, samples_u=chains.samples_u,
+                     log_posterior=chains.log_posterior, labels=np.array(param.labels),
+                     acceptance=chains.acceptance, ess=chains.ess, rhat=chains.rhat,
+                     autocorr_time=chains.autocorr_time, method=method)
+        files.append(out / "chains.npz")
+    files += _write_residuals(out, scene_model, data, state)
+    return files

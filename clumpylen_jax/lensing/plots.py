@@ -39,17 +39,8 @@ def plot_lens(lens, beta, path, *, field, pixel_arcsec, source_radius_arcsec=Non
     valid = np.asarray(images.valid)
 
     fig, (axl, axs) = plt.subplots(1, 2, figsize=(11, 5.2))
-    for name, colour in (("tangential", "tab:red"), ("radial", "tab:blue")):
-        for k, seg in enumerate(cc[name]):
-            axl.plot(seg[:, 0], seg[:, 1], color=colour, lw=1, label=f"{name} critical" if k == 0 else None)
-        for k, seg in enumerate(ca[name]):
-            axs.plot(seg[:, 0], seg[:, 1], color=colour, lw=1, label=f"{name} caustic" if k == 0 else None)
-    t1 = np.asarray(images.theta1)[valid]
-    t2 = np.asarray(images.theta2)[valid]
-    mu = np.asarray(images.magnification)[valid]
-    axl.scatter(t1, t2, marker="x", color="k", zorder=3, label="images")
-    for a, b, m in zip(t1, t2, mu):
-        axl.annotate(f"μ={m:.1f}", (a, b), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    _draw_curves(axl, axs, cc, ca)
+    _draw_images(axl, images, valid)
     axs.scatter([beta[0]], [beta[1]], color="m", zorder=3, label="source")
     if source_radius_arcsec:
         axs.add_patch(plt.Circle((beta[0], beta[1]), source_radius_arcsec, fill=False, color="m"))
@@ -66,8 +57,34 @@ def plot_lens(lens, beta, path, *, field, pixel_arcsec, source_radius_arcsec=Non
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    try:
+        _save_png_atomically(fig, Path(path), dpi)
+    finally:
+        plt.close(fig)
+    return Path(path)
 
-    path = Path(path)
+
+def _draw_curves(axl, axs, cc, ca) -> None:
+    """Critical curves on the lens-plane axes, caustics on the source-plane axes (arcsec)."""
+    for name, colour in (("tangential", "tab:red"), ("radial", "tab:blue")):
+        for k, seg in enumerate(cc[name]):
+            axl.plot(seg[:, 0], seg[:, 1], color=colour, lw=1, label=f"{name} critical" if k == 0 else None)
+        for k, seg in enumerate(ca[name]):
+            axs.plot(seg[:, 0], seg[:, 1], color=colour, lw=1, label=f"{name} caustic" if k == 0 else None)
+
+
+def _draw_images(axl, images, valid) -> None:
+    """The valid images as crosses at θ [arcsec], each labelled with its magnification."""
+    t1 = np.asarray(images.theta1)[valid]
+    t2 = np.asarray(images.theta2)[valid]
+    mu = np.asarray(images.magnification)[valid]
+    axl.scatter(t1, t2, marker="x", color="k", zorder=3, label="images")
+    for a, b, m in zip(t1, t2, mu):
+        axl.annotate(f"μ={m:.1f}", (a, b), textcoords="offset points", xytext=(4, 4), fontsize=8)
+
+
+def _save_png_atomically(fig, path: Path, dpi) -> None:
+    """Write fig as a PNG: to a temporary file beside path, then os.replace (no half file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
@@ -78,6 +95,3 @@ def plot_lens(lens, beta, path, *, field, pixel_arcsec, source_radius_arcsec=Non
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-    finally:
-        plt.close(fig)
-    return path

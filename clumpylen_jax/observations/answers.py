@@ -67,6 +67,12 @@ def _ellipse_through(A, re, q, pa):
         float(np.arctan2(v[1, 1], v[0, 1]))
 
 
+def _param_err(cov, idx, label):
+    """1σ of a fitted parameter from the covariance; NaN where `label` was not fitted."""
+    i = idx.get(label)
+    return float(np.sqrt(cov[i, i])) if i is not None else np.nan
+
+
 def clump_rows(fit, observations, frame, scene):
     """An astropy Table of the fitted clumps (see the module doc)."""
     from astropy.table import Table
@@ -77,21 +83,39 @@ def clump_rows(fit, observations, frame, scene):
     t["id"] = np.arange(n)
     if n == 0:
         return t
-    labels = fit.param.labels
-    idx = _index(labels)
-    x = np.asarray(fit.uncertainty.x, float)
+    idx = _index(fit.param.labels)
     cov = np.asarray(fit.uncertainty.cov, float)
     cl = fit.state.source.clumps
     phi = np.asarray(cl.center_arcsec, float)
     re = np.asarray(cl.re_arcsec, float)
     q = np.asarray(cl.q, float)
     pa = np.asarray(cl.pa_rad, float)
+    # columns are added in fit.ecsv's order: positions, sizes, shapes, photometry, masses, flag
+    pix, theta, th_cov = _position_columns(t, frame, phi, cov, idx)
+    re_err = np.array([_param_err(cov, idx, f"clumps.re_arcsec[{i}]") for i in range(n)])
+    pa_theta = np.array([frame.pa_theta(phi[i], pa[i])[0] for i in range(n)])
+    if scene.lens is not None:
+        re, re_err = _source_plane_columns(t, scene.lens, theta, th_cov, re, re_err, q, pa_theta)
+    _size_columns(t, re, re_err, scene)
+    if opts.clump_shape == "elliptical":
+        t["q"] = q
+        t["q_err"] = [_param_err(cov, idx, f"clumps.q[{i}]") for i in range(n)]
+        t["pa_rad"] = pa_theta
+        t["pa_rad_err"] = [_param_err(cov, idx, f"clumps.pa_rad[{i}]") for i in range(n)]
     flux = np.asarray(cl.flux, float)
+    f_err = np.array([[_param_err(cov, idx, f"clumps.flux[{i},{b}]") for b in range(len(observations))]
+                      for i in range(n)])
+    _photometry_columns(t, flux, f_err, observations, opts.detection_snr, scene.lens)
+    if len(observations) >= 2 and scene.z_source is not None:
+        _mass_columns(t, flux, f_err, observations, scene)
+    t["flag"] = _flags(fit, frame, pix, opts)
+    return t
 
-    def err(label):
-        i = idx.get(label)
-        return float(np.sqrt(cov[i, i])) if i is not None else np.nan
 
+def _position_columns(t, frame, phi, cov, idx):
+    """Add x/y_pix (first observation's pixels), θ [arcsec] and RA/Dec [deg] with errors;
+    returns (pixels [N, 2], θ [N, 2] arcsec, θ covariances [N][2, 2] arcsec²)."""
+    n = len(phi)
     pix = frame.pixel_of(phi, 0)
     theta = frame.theta(phi)
     pos_cov = [_cov_block(cov, idx, [f"clumps.center_arcsec[{i},0]", f"clumps.center_arcsec[{i},1]"])
@@ -114,25 +138,32 @@ def clump_rows(fit, observations, frame, scene):
         t["ra_deg_err"] = np.asarray(t["theta1_arcsec_err"]) / 3600.0 / cosd
         t["dec_deg"] = radec[1]
         t["dec_deg_err"] = np.asarray(t["theta2_arcsec_err"]) / 3600.0
-    re_err = np.array([err(f"clumps.re_arcsec[{i}]") for i in range(n)])
-    pa_theta = np.array([frame.pa_theta(phi[i], pa[i])[0] for i in range(n)])
-    lens = scene.lens
-    if lens is not None:
-        A = np.asarray(lens.matrix, float)
-        beta = theta @ A.T
-        b_cov = [A @ c @ A.T for c in th_cov]
-        t["beta1_arcsec"] = beta[:, 0]
-        t["beta1_arcsec_err"] = [np.sqrt(c[0, 0]) for c in b_cov]
-        t["beta2_arcsec"] = beta[:, 1]
-        t["beta2_arcsec_err"] = [np.sqrt(c[1, 1]) for c in b_cov]
-        t["magnification"] = np.full(n, abs(lens.magnification))
-        t["magnification_err"] = np.zeros(n)   # given, not fitted
-        t["re_obs_arcsec"] = re
-        t["re_obs_arcsec_err"] = re_err
-        src = [_ellipse_through(A, re[i], q[i], pa_theta[i]) for i in range(n)]
-        scale = np.array([s[0] / re[i] for i, s in enumerate(src)])
-        re, re_err = np.array([s[0] for s in src]), re_err * scale
-        t["q_src"] = [s[1] for s in src]
+    return pix, theta, th_cov
+
+
+def _source_plane_columns(t, lens, theta, th_cov, re, re_err, q, pa_theta):
+    """Add β [arcsec] (β = A θ), the given magnification, the observed R_e and the intrinsic
+    q; returns the intrinsic (R_e [arcsec], its error): the image ellipse mapped through A."""
+    n = len(re)
+    A = np.asarray(lens.matrix, float)
+    beta = theta @ A.T
+    b_cov = [A @ c @ A.T for c in th_cov]
+    t["beta1_arcsec"] = beta[:, 0]
+    t["beta1_arcsec_err"] = [np.sqrt(c[0, 0]) for c in b_cov]
+    t["beta2_arcsec"] = beta[:, 1]
+    t["beta2_arcsec_err"] = [np.sqrt(c[1, 1]) for c in b_cov]
+    t["magnification"] = np.full(n, abs(lens.magnification))
+    t["magnification_err"] = np.zeros(n)   # given, not fitted
+    t["re_obs_arcsec"] = re
+    t["re_obs_arcsec_err"] = re_err
+    src = [_ellipse_through(A, re[i], q[i], pa_theta[i]) for i in range(n)]
+    scale = np.array([s[0] / re[i] for i, s in enumerate(src)])
+    t["q_src"] = [s[1] for s in src]
+    return np.array([s[0] for s in src]), re_err * scale
+
+
+def _size_columns(t, re, re_err, scene):
+    """Add R_e [arcsec] and, with z_source, R_e [pc]."""
     t["re_arcsec"] = re
     t["re_arcsec_err"] = re_err
     if scene.z_source is not None:
@@ -140,21 +171,19 @@ def clump_rows(fit, observations, frame, scene):
         app = arcsec_per_pc(scene.z_source, make_cosmology(*scene.cosmology))
         t["re_pc"] = re / app
         t["re_pc_err"] = re_err / app
-    if opts.clump_shape == "elliptical":
-        t["q"] = q
-        t["q_err"] = [err(f"clumps.q[{i}]") for i in range(n)]
-        t["pa_rad"] = pa_theta
-        t["pa_rad_err"] = [err(f"clumps.pa_rad[{i}]") for i in range(n)]
-    f_err = np.array([[err(f"clumps.flux[{i},{b}]") for b in range(len(observations))]
-                      for i in range(n)])
+
+
+def _photometry_columns(t, flux, f_err, observations, detection_snr, lens):
+    """Add flux (data units), observed AB mag (upper limit below detection_snr σ), uplim and,
+    with a lens, the intrinsic mag per band."""
     for b, ob in enumerate(observations):
         F, s = flux[:, b], f_err[:, b]
-        det = F >= opts.detection_snr * s
+        det = F >= detection_snr * s
         t[f"flux_{ob.name}"] = F
         t[f"flux_{ob.name}_err"] = s
         with np.errstate(divide="ignore", invalid="ignore"):
             mag = np.where(det, ab_magnitude(np.abs(F), ob.zeropoint_ab),
-                           ab_magnitude(np.maximum(F, 0) + opts.detection_snr * s, ob.zeropoint_ab))
+                           ab_magnitude(np.maximum(F, 0) + detection_snr * s, ob.zeropoint_ab))
             mag_err = np.where(det, ab_magnitude_err(np.abs(F), s), np.nan)
         t[f"mag_{ob.name}"] = mag
         t[f"mag_{ob.name}_err"] = mag_err
@@ -162,15 +191,22 @@ def clump_rows(fit, observations, frame, scene):
         if lens is not None:
             t[f"mag_int_{ob.name}"] = mag + 2.5 * np.log10(abs(lens.magnification))
             t[f"mag_int_{ob.name}_err"] = mag_err
-    if len(observations) >= 2 and scene.z_source is not None:
-        mu = abs(lens.magnification) if lens is not None else 1.0
-        from ..photometry import AB_ZERO_UJY
-        ujy = np.array([10 ** (-0.4 * (ob.zeropoint_ab - AB_ZERO_UJY)) for ob in observations])
-        masses = sed_fit(flux * ujy / mu, f_err * ujy / mu, [ob.name for ob in observations],
-                         scene.z_source, dict(scene.sps), scene.cosmology)
-        for key, val in masses.items():
-            t[key] = val
-    flag = np.zeros(n, int)
+
+
+def _mass_columns(t, flux, f_err, observations, scene):
+    """Add mass [M☉] and age [Myr] from the SED fit of the delensed fluxes (in μJy)."""
+    mu = abs(scene.lens.magnification) if scene.lens is not None else 1.0
+    from ..photometry import AB_ZERO_UJY
+    ujy = np.array([10 ** (-0.4 * (ob.zeropoint_ab - AB_ZERO_UJY)) for ob in observations])
+    masses = sed_fit(flux * ujy / mu, f_err * ujy / mu, [ob.name for ob in observations],
+                     scene.z_source, dict(scene.sps), scene.cosmology)
+    for key, val in masses.items():
+        t[key] = val
+
+
+def _flags(fit, frame, pix, opts):
+    """The flag bits (module doc): 1 not converged, 2 at the field's edge, 4 R_e at a bound."""
+    flag = np.zeros(len(pix), int)
     if not fit.success:
         flag |= 1
     g0 = frame.grids[0]
@@ -179,8 +215,7 @@ def clump_rows(fit, observations, frame, scene):
     r_obs = np.asarray(fit.state.source.clumps.re_arcsec, float)
     at_bound = (r_obs < 1.02 * opts.clump_re_min_arcsec) | (r_obs > 0.98 * opts.clump_re_max_arcsec)
     flag |= np.where(at_bound, 4, 0)
-    t["flag"] = flag
-    return t
+    return flag
 
 
 def sed_fit(flux_ujy, err_ujy, filters, z, sps_options=None, cosmology=(70.0, 0.3)):
