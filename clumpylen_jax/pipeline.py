@@ -13,6 +13,7 @@ import dataclasses
 import math
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
@@ -440,17 +441,49 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 6 + len(scene.bands) + 3
+    n_stages = 6 + len(scene.bands) + 6
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)
-    model = prep.model
-    lensed = model.lensed
-    source = prep.source
     out.mkdir(parents=True, exist_ok=True)
     (out / "bands").mkdir(exist_ok=True)
     stages_ran = ["population" if scene.source.clumps is not None else None, "photometry",
-                  "lensing" if lensed else None]
+                  "lensing" if prep.model.lensed else None]
+
+    # The programs after the band render (unlensed bands, high-resolution images, clump
+    # magnifications) are loaded or compiled and launched in a background thread while this
+    # one runs and writes the band render: JAX runs them asynchronously, so their loading,
+    # compilation and running overlap the main thread's work. Same programs, same inputs:
+    # the same images as one after the other.
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-launch")
+    try:
+        return _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _launch_unlensed(prep: Prepared, prog: _Progress):
+    """The unlensed band model and its images (launched, not waited for)."""
+    with prog.stage("unlensed images (launch)"):
+        unl_model = model_mod.build_model(prep.source, prep.bands, lens=None,
+                                          accuracy=prep.accuracy, dtype=prep.dtype)
+        return unl_model, _jit_call(unl_model, 'band_images', prep.source)
+
+
+def _launch_magnifications(prep: Prepared, prog: _Progress):
+    with prog.stage("catalogue (launch)"):
+        return _jit_call(prep.model, 'clump_magnifications', prep.source)
+
+
+def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
+    model = prep.model
+    lensed = model.lensed
+    source = prep.source
+    table = prep.catalog
+    later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
+    later_hr = pool.submit(_launch_hr, prep, prog) if scene.output.hr else None
+    later_mag = (pool.submit(_launch_magnifications, prep, prog)
+                 if table is not None and len(table) and lensed else None)
 
     with prog.stage("render (compile + run)"):
         key = jax.random.key(scene.seed)
@@ -465,11 +498,10 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
 
     unlensed = [None] * len(scene.bands)
     unl_model = None
-    if scene.output.unlensed:
+    if later_unl is not None:
         with prog.stage("unlensed images"):
-            unl_model = model_mod.build_model(source, prep.bands, lens=None,
-                                              accuracy=prep.accuracy, dtype=prep.dtype)
-            unlensed = [np.asarray(x) for x in _jit_call(unl_model, 'band_images', source)]
+            unl_model, unl_images = later_unl.result()
+            unlensed = [np.asarray(x) for x in unl_images]
 
     summary_bands = {}
     grids = {}
@@ -510,13 +542,12 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
                                     wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
     with prog.stage("high-resolution images"):
-        hr_info = _write_hr(prep, out) if scene.output.hr else None
+        hr_info = _write_hr(prep, out, later_hr.result()) if later_hr is not None else None
 
     with prog.stage("catalogue"):
-        table = prep.catalog
         if table is not None:
-            if len(table) and lensed:   # every source_mode (linearised clumps too)
-                table["magnification"] = np.asarray(_jit_call(model, 'clump_magnifications', source))
+            if later_mag is not None:   # every source_mode (linearised clumps too)
+                table["magnification"] = np.asarray(later_mag.result())
             else:
                 table["magnification"] = np.full(len(table), 1.0 if not lensed else np.nan)
             from .preflight import smear_flags
@@ -549,13 +580,17 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     return summary
 
 
-def _write_hr(prep: Prepared, out: Path):
-    """High-resolution lensed and unlensed images: monochromatic at hr_rgb_um, else per band."""
+def _launch_hr(prep: Prepared, prog: _Progress):
+    """The high-resolution source-plane and lens-plane programs, launched (not waited for):
+    monochromatic at hr_rgb_um, else per band."""
+    with prog.stage("high-resolution images (launch)"):
+        return _hr_images(prep)
+
+
+def _hr_images(prep: Prepared):
     scene = prep.scene
     source = prep.source
     model = prep.model
-    hr_dir = out / "hr"
-    hr_dir.mkdir(exist_ok=True)
     waves = scene.output.hr_rgb_um
     if waves is not None:
         mono = _monochromatic_source(prep, waves)
@@ -574,11 +609,21 @@ def _write_hr(prep: Prepared, out: Path):
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
     # the stamp groups' indices as tuples: static (baked in as constants), as before
     groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
-    unl = np.asarray(_program("source_plane_images", _source_plane_images, mono, sgrid,
-                              prep.accuracy, groups))
-    lensed = None
-    if model.lensed:
-        lensed = np.asarray(_jit_call(model, 'lens_plane', mono))
+    unl = _program("source_plane_images", _source_plane_images, mono, sgrid, prep.accuracy, groups)
+    lensed = _jit_call(model, 'lens_plane', mono) if model.lensed else None
+    return names, unit, sgrid, unl, lensed
+
+
+def _write_hr(prep: Prepared, out: Path, launched):
+    """High-resolution lensed and unlensed images (`_launch_hr`'s) written to out/hr."""
+    scene = prep.scene
+    model = prep.model
+    waves = scene.output.hr_rgb_um
+    names, unit, sgrid, unl, lensed = launched
+    unl = np.asarray(unl)
+    lensed = None if lensed is None else np.asarray(lensed)
+    hr_dir = out / "hr"
+    hr_dir.mkdir(exist_ok=True)
     for k, name in enumerate(names):
         hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
         io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),
