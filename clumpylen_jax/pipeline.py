@@ -441,7 +441,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 6 + len(scene.bands) + 6
+    n_stages = 6 + len(scene.bands) + 7
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)
@@ -481,16 +481,25 @@ def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
     source = prep.source
     table = prep.catalog
     later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
-    later_hr = pool.submit(_launch_hr, prep, prog) if scene.output.hr else None
+    hr = None
+    if scene.output.hr:
+        with prog.stage("high-resolution photometry"):
+            hr = _hr_source(prep)
+    later_hr = pool.submit(_launch_hr, prep, prog, hr) if hr is not None else None
     later_mag = (pool.submit(_launch_magnifications, prep, prog)
                  if table is not None and len(table) and lensed else None)
 
     with prog.stage("render (compile + run)"):
-        key = jax.random.key(scene.seed)
+        key = jax.random.key(scene.seed) if scene.output.noise else None
+        # the high-resolution lens plane comes from the band render's own program: the host's
+        # light at the traced pixels (per unit flux) and the rays are computed once for both
+        hr_fluxes = _fluxes(hr[0]) if hr is not None and lensed else None
+        bands_out, hr_lensed = _program("SceneModel.band_render", _band_render, model, source,
+                                        key, hr_fluxes)
         if scene.output.noise:
-            noisy, clean, var = _jit_call(model, 'observe', source, key)
+            noisy, clean, var = bands_out
         else:
-            clean = _jit_call(model, 'noiseless', source)
+            clean = bands_out
             noisy, var = clean, model.variances(clean)
         noisy = [np.asarray(x) for x in noisy]
         clean = [np.asarray(x) for x in clean]
@@ -542,7 +551,8 @@ def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
                                     wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
     with prog.stage("high-resolution images"):
-        hr_info = _write_hr(prep, out, later_hr.result()) if later_hr is not None else None
+        hr_info = (_write_hr(prep, out, hr, later_hr.result(), hr_lensed)
+                   if later_hr is not None else None)
 
     with prog.stage("catalogue"):
         if table is not None:
@@ -580,24 +590,51 @@ def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
     return summary
 
 
-def _launch_hr(prep: Prepared, prog: _Progress):
-    """The high-resolution source-plane and lens-plane programs, launched (not waited for):
-    monochromatic at hr_rgb_um, else per band."""
-    with prog.stage("high-resolution images (launch)"):
-        return _hr_images(prep)
+def _band_render(model, source, key, hr_fluxes):
+    """The band render (`observe` with a noise key, else `noiseless`) and, given hr_fluxes,
+    the high-resolution lens-plane images (`lens_plane`) of the source with those fluxes,
+    as one program: the work both need (host light per unit flux at the traced pixels,
+    rays) is done once, and one program is compiled and loaded instead of two."""
+    bands = model.noiseless(source) if key is None else model.observe(source, key)
+    if hr_fluxes is None:
+        return bands, None
+    return bands, model.lens_plane(_with_fluxes(source, hr_fluxes))
 
 
-def _hr_images(prep: Prepared):
-    scene = prep.scene
-    source = prep.source
-    model = prep.model
-    waves = scene.output.hr_rgb_um
+def _fluxes(source: Source):
+    """(bulge, disk, clumps) fluxes of a source (None where it has no such component)."""
+    return (None if source.bulge is None else source.bulge.flux,
+            None if source.disk is None else source.disk.sersic.flux,
+            None if source.clumps is None else source.clumps.flux)
+
+
+def _with_fluxes(source: Source, fluxes):
+    """The source with the fluxes of `_fluxes` put in (geometry unchanged)."""
+    fb, fd, fc = fluxes
+    bulge = None if source.bulge is None else dataclasses.replace(source.bulge, flux=fb)
+    disk = None if source.disk is None else dataclasses.replace(
+        source.disk, sersic=dataclasses.replace(source.disk.sersic, flux=fd))
+    clumps = None if source.clumps is None else dataclasses.replace(source.clumps, flux=fc)
+    return Source(bulge, disk, clumps)
+
+
+def _hr_source(prep: Prepared):
+    """The source of the high-resolution images: (source, names, unit): monochromatic at
+    hr_rgb_um (μJy), else the band fluxes."""
+    waves = prep.scene.output.hr_rgb_um
     if waves is not None:
-        mono = _monochromatic_source(prep, waves)
-        names = [f"{w:g}um" for w in waves]
-        unit = "uJy/pixel"
-    else:
-        mono, names, unit = source, list(scene.band_names), "counts/s/pixel"
+        return _monochromatic_source(prep, waves), [f"{w:g}um" for w in waves], "uJy/pixel"
+    return prep.source, list(prep.scene.band_names), "counts/s/pixel"
+
+
+def _launch_hr(prep: Prepared, prog: _Progress, hr):
+    """The high-resolution source-plane program, launched (not waited for)."""
+    with prog.stage("high-resolution images (launch)"):
+        return _hr_source_plane(prep, hr[0])
+
+
+def _hr_source_plane(prep: Prepared, mono):
+    scene = prep.scene
     center, radius = model_mod.source_extent(mono, prep.accuracy.source_flux_fraction,
                                              prep.accuracy.stamp_flux_fraction)
     from .pixels import Grid
@@ -609,17 +646,18 @@ def _hr_images(prep: Prepared):
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
     # the stamp groups' indices as tuples: static (baked in as constants), as before
     groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
-    unl = _program("source_plane_images", _source_plane_images, mono, sgrid, prep.accuracy, groups)
-    lensed = _jit_call(model, 'lens_plane', mono) if model.lensed else None
-    return names, unit, sgrid, unl, lensed
+    return sgrid, _program("source_plane_images", _source_plane_images, mono, sgrid,
+                           prep.accuracy, groups)
 
 
-def _write_hr(prep: Prepared, out: Path, launched):
-    """High-resolution lensed and unlensed images (`_launch_hr`'s) written to out/hr."""
+def _write_hr(prep: Prepared, out: Path, hr, launched, lensed):
+    """High-resolution unlensed (`_launch_hr`'s) and lensed (the band render's) images
+    written to out/hr."""
     scene = prep.scene
     model = prep.model
     waves = scene.output.hr_rgb_um
-    names, unit, sgrid, unl, lensed = launched
+    _, names, unit = hr
+    sgrid, unl = launched
     unl = np.asarray(unl)
     lensed = None if lensed is None else np.asarray(lensed)
     hr_dir = out / "hr"
