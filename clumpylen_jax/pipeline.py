@@ -441,7 +441,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 6 + len(scene.bands) + 7
+    n_stages = 6 + len(scene.bands) + 8
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)
@@ -455,10 +455,14 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     # one runs and writes the band render: JAX runs them asynchronously, so their loading,
     # compilation and running overlap the main thread's work. Same programs, same inputs:
     # the same images as one after the other.
+    # The high-resolution products are written by a thread of their own (their FITS files
+    # and colour arrays beside the band files; figures are drawn one at a time).
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-launch")
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-write-hr")
     try:
-        return _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start)
+        return _simulate_launched(scene, prep, prog, pool, writer, out, stages_ran, t_start)
     finally:
+        writer.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -475,7 +479,12 @@ def _launch_magnifications(prep: Prepared, prog: _Progress):
         return _jit_call(prep.model, 'clump_magnifications', prep.source)
 
 
-def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
+def _write_hr_stage(prep, prog, out, hr, later_hr, hr_lensed):
+    with prog.stage("high-resolution images"):
+        return _write_hr(prep, out, hr, later_hr.result(), hr_lensed)
+
+
+def _simulate_launched(scene, prep, prog, pool, writer, out, stages_ran, t_start):
     model = prep.model
     lensed = model.lensed
     source = prep.source
@@ -504,6 +513,9 @@ def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
         noisy = [np.asarray(x) for x in noisy]
         clean = [np.asarray(x) for x in clean]
         var = [np.asarray(x) for x in var]
+
+    hr_written = (writer.submit(_write_hr_stage, prep, prog, out, hr, later_hr, hr_lensed)
+                  if later_hr is not None else None)
 
     unlensed = [None] * len(scene.bands)
     unl_model = None
@@ -550,9 +562,8 @@ def _simulate_launched(scene, prep, prog, pool, out, stages_ran, t_start):
                                     rgbimage.extent_of_grid(g0), reference=_rgb_channels(truth, grids, triple),
                                     wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
-    with prog.stage("high-resolution images"):
-        hr_info = (_write_hr(prep, out, hr, later_hr.result(), hr_lensed)
-                   if later_hr is not None else None)
+    with prog.stage("high-resolution images (wait)"):
+        hr_info = hr_written.result() if hr_written is not None else None
 
     with prog.stage("catalogue"):
         if table is not None:
