@@ -562,8 +562,10 @@ def _simulate_launched(scene, prep, prog, pool, writer, out, stages_ran, t_start
                                     rgbimage.extent_of_grid(g0), reference=_rgb_channels(truth, grids, triple),
                                     wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
-    with prog.stage("high-resolution images (wait)"):
-        hr_info = hr_written.result() if hr_written is not None else None
+    hr_info = None
+    if hr_written is not None:
+        with prog.stage("high-resolution images (wait)"):
+            hr_info = hr_written.result()
 
     with prog.stage("catalogue"):
         if table is not None:
