@@ -309,7 +309,10 @@ def _print_files_and_split(summary, out: str, cache_dir) -> None:
     print("  slowest stages: " + ", ".join(
         f"{k} {v['total']:.1f} s ({v['compile']:.1f} compile)" for k, v in big))
     where = f"compilation cache {cache_dir}" if cache_dir else "compilation cache off"
-    print(f"  time split: compile {comp:.1f} s + run {run:.1f} s ({where})")
+    # programs after the band render load and run in a background thread beside the main
+    # one: the stages' seconds, summed over both threads, exceed the wall time
+    print(f"  time split (stages summed over the main and background threads): compile "
+          f"{comp:.1f} s + run {run:.1f} s ({where})")
 
 
 def _existing_dir(path: str) -> str:

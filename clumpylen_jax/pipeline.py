@@ -13,6 +13,7 @@ import dataclasses
 import math
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
@@ -419,30 +420,81 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 6 + len(scene.bands) + 3
+    n_stages = 6 + len(scene.bands) + 8
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bands").mkdir(exist_ok=True)
+    # The programs after the band render (unlensed bands, high-resolution images, clump
+    # magnifications) are loaded or compiled and launched in a background thread while this
+    # one runs and writes the band render: JAX runs them asynchronously, so their loading,
+    # compilation and running overlap the main thread's work. Same programs, same inputs:
+    # the same images as one after the other.
+    # The high-resolution products are written by a thread of their own (their FITS files
+    # and colour arrays beside the band files; figures are drawn one at a time).
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-launch")
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-write-hr")
+    try:
+        return _simulate_launched(prep, prog, pool, writer, out, t_start)
+    finally:
+        writer.shutdown(wait=True, cancel_futures=True)
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _launch_unlensed(prep: Prepared, prog: _Progress):
+    """The unlensed band model and its images (launched, not waited for)."""
+    with prog.stage("unlensed images (launch)"):
+        unl_model = model_mod.build_model(prep.source, prep.bands, lens=None,
+                                          accuracy=prep.accuracy, dtype=prep.dtype)
+        return unl_model, _jit_call(unl_model, 'band_images', prep.source)
+
+
+def _launch_magnifications(prep: Prepared, prog: _Progress):
+    with prog.stage("catalogue (launch)"):
+        return _jit_call(prep.model, 'clump_magnifications', prep.source)
+
+
+def _write_hr_stage(prep, prog, out, hr, later_hr, hr_lensed):
+    with prog.stage("high-resolution images"):
+        return _write_hr(prep, out, hr, later_hr.result(), hr_lensed)
+
+
+def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start) -> dict:
+    """The stages of `simulate` after `prepare`: programs launched in `pool`, the
+    high-resolution products written by `writer`, the rest here; returns the summary."""
+    scene, model, table = prep.scene, prep.model, prep.catalog
+    later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
+    hr = None
+    if scene.output.hr:
+        with prog.stage("high-resolution photometry"):
+            hr = _hr_source(prep)
+    later_hr = pool.submit(_launch_hr, prep, prog, hr) if hr is not None else None
+    later_mag = (pool.submit(_launch_magnifications, prep, prog)
+                 if table is not None and len(table) and model.lensed else None)
     with prog.stage("render (compile + run)"):
-        noisy, clean, var = _render_bands(prep)
+        (noisy, clean, var), hr_lensed = _render_bands(prep, hr)
+    hr_written = (writer.submit(_write_hr_stage, prep, prog, out, hr, later_hr, hr_lensed)
+                  if later_hr is not None else None)
     unlensed, unl_model = [None] * len(scene.bands), None
-    if scene.output.unlensed:
+    if later_unl is not None:
         with prog.stage("unlensed images"):
-            unlensed, unl_model = _render_unlensed(prep)
+            unl_model, unl_images = later_unl.result()
+            unlensed = [np.asarray(x) for x in unl_images]
     summary_bands, grids = {}, {}
     for k, b in enumerate(scene.bands):
         with prog.stage(f"write {b.filter}"):
-            grids[b.filter] = prep.model.layouts[k].grid
+            grids[b.filter] = model.layouts[k].grid
             summary_bands[b.filter] = _write_band(out, prep, k, noisy[k], clean[k], var[k],
                                                   unlensed[k], unl_model)
     with prog.stage("colour composites"):
         _write_composites(out, prep, noisy if scene.output.noise else clean, clean, grids)
-    with prog.stage("high-resolution images"):
-        hr_info = _write_hr(prep, out) if scene.output.hr else None
+    hr_info = None
+    if hr_written is not None:
+        with prog.stage("high-resolution images (wait)"):
+            hr_info = hr_written.result()
     with prog.stage("catalogue"):
-        table = _write_catalogue(out, prep)
+        table = _write_catalogue(out, prep, later_mag)
     summary = _summary(prep, summary_bands, table, hr_info)
     summary["timings_s"] = dict(prog.timings, total=round(time.perf_counter() - t_start, 3))
     summary["timings_split_s"] = prog.clock.split()
@@ -451,27 +503,23 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     return summary
 
 
-def _render_bands(prep: Prepared):
-    """(noisy, noiseless, variance) images per band [counts/s], as numpy arrays; without
-    noise the 'noisy' images are the noiseless ones."""
-    scene, model, source = prep.scene, prep.model, prep.source
-    key = jax.random.key(scene.seed)
+def _render_bands(prep: Prepared, hr):
+    """((noisy, noiseless, variance) images per band [counts/s] as numpy arrays, and the
+    high-resolution lens-plane images of `hr`'s source or None); without noise the 'noisy'
+    images are the noiseless ones. One program (`_band_render`) makes both."""
+    scene, model = prep.scene, prep.model
+    key = jax.random.key(scene.seed) if scene.output.noise else None
+    # the high-resolution lens plane comes from the band render's own program: the host's
+    # light at the traced pixels (per unit flux) and the rays are computed once for both
+    hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
+    bands_out, hr_lensed = _program("SceneModel.band_render", _band_render, model, prep.source,
+                                    key, hr_fluxes)
     if scene.output.noise:
-        noisy, clean, var = _jit_call(model, 'observe', source, key)
+        noisy, clean, var = bands_out
     else:
-        clean = _jit_call(model, 'noiseless', source)
+        clean = bands_out
         noisy, var = clean, model.variances(clean)
-    noisy = [np.asarray(x) for x in noisy]
-    clean = [np.asarray(x) for x in clean]
-    var = [np.asarray(x) for x in var]
-    return noisy, clean, var
-
-
-def _render_unlensed(prep: Prepared):
-    """(images per band [counts/s], their model): the source without the lens."""
-    unl_model = model_mod.build_model(prep.source, prep.bands, lens=None,
-                                      accuracy=prep.accuracy, dtype=prep.dtype)
-    return [np.asarray(x) for x in _jit_call(unl_model, 'band_images', prep.source)], unl_model
+    return tuple([np.asarray(x) for x in imgs] for imgs in (noisy, clean, var)), hr_lensed
 
 
 def _write_band(out: Path, prep: Prepared, k: int, noisy, clean, var, unlensed, unl_model) -> dict:
@@ -513,12 +561,13 @@ def _write_composites(out: Path, prep: Prepared, shown, clean, grids) -> None:
                                 wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
 
-def _write_catalogue(out: Path, prep: Prepared):
-    """catalog.ecsv with each clump's magnification and smear flag; the table (None: no clumps)."""
+def _write_catalogue(out: Path, prep: Prepared, later_mag):
+    """catalog.ecsv with each clump's magnification (`later_mag`: the launched
+    magnifications, None when unlensed or no clumps) and smear flag; the table (None: no clumps)."""
     model, table = prep.model, prep.catalog
     if table is not None:
-        if len(table) and model.lensed:   # every source_mode (linearised clumps too)
-            table["magnification"] = np.asarray(_jit_call(model, 'clump_magnifications', prep.source))
+        if later_mag is not None:   # every source_mode (linearised clumps too)
+            table["magnification"] = np.asarray(later_mag.result())
         else:
             table["magnification"] = np.full(len(table), 1.0 if not model.lensed else np.nan)
         from .preflight import smear_flags
@@ -554,20 +603,51 @@ def _summary(prep: Prepared, summary_bands: dict, table, hr_info) -> dict:
     }
 
 
-def _write_hr(prep: Prepared, out: Path):
-    """High-resolution lensed and unlensed images: monochromatic at hr_rgb_um, else per band."""
-    scene = prep.scene
-    source = prep.source
-    model = prep.model
-    hr_dir = out / "hr"
-    hr_dir.mkdir(exist_ok=True)
-    waves = scene.output.hr_rgb_um
+def _band_render(model, source, key, hr_fluxes):
+    """The band render (`observe` with a noise key, else `noiseless`) and, given hr_fluxes,
+    the high-resolution lens-plane images (`lens_plane`) of the source with those fluxes,
+    as one program: the work both need (host light per unit flux at the traced pixels,
+    rays) is done once, and one program is compiled and loaded instead of two."""
+    bands = model.noiseless(source) if key is None else model.observe(source, key)
+    if hr_fluxes is None:
+        return bands, None
+    return bands, model.lens_plane(_with_fluxes(source, hr_fluxes))
+
+
+def _fluxes(source: Source):
+    """(bulge, disk, clumps) fluxes of a source (None where it has no such component)."""
+    return (None if source.bulge is None else source.bulge.flux,
+            None if source.disk is None else source.disk.sersic.flux,
+            None if source.clumps is None else source.clumps.flux)
+
+
+def _with_fluxes(source: Source, fluxes):
+    """The source with the fluxes of `_fluxes` put in (geometry unchanged)."""
+    fb, fd, fc = fluxes
+    bulge = None if source.bulge is None else dataclasses.replace(source.bulge, flux=fb)
+    disk = None if source.disk is None else dataclasses.replace(
+        source.disk, sersic=dataclasses.replace(source.disk.sersic, flux=fd))
+    clumps = None if source.clumps is None else dataclasses.replace(source.clumps, flux=fc)
+    return Source(bulge, disk, clumps)
+
+
+def _hr_source(prep: Prepared):
+    """The source of the high-resolution images: (source, names, unit): monochromatic at
+    hr_rgb_um (μJy), else the band fluxes."""
+    waves = prep.scene.output.hr_rgb_um
     if waves is not None:
-        mono = _monochromatic_source(prep, waves)
-        names = [f"{w:g}um" for w in waves]
-        unit = "uJy/pixel"
-    else:
-        mono, names, unit = source, list(scene.band_names), "counts/s/pixel"
+        return _monochromatic_source(prep, waves), [f"{w:g}um" for w in waves], "uJy/pixel"
+    return prep.source, list(prep.scene.band_names), "counts/s/pixel"
+
+
+def _launch_hr(prep: Prepared, prog: _Progress, hr):
+    """The high-resolution source-plane program, launched (not waited for)."""
+    with prog.stage("high-resolution images (launch)"):
+        return _hr_source_plane(prep, hr[0])
+
+
+def _hr_source_plane(prep: Prepared, mono):
+    scene = prep.scene
     center, radius = model_mod.source_extent(mono, prep.accuracy.source_flux_fraction,
                                              prep.accuracy.stamp_flux_fraction)
     from .pixels import Grid
@@ -579,11 +659,22 @@ def _write_hr(prep: Prepared, out: Path):
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
     # the stamp groups' indices as tuples: static (baked in as constants), as before
     groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
-    unl = np.asarray(_program("source_plane_images", _source_plane_images, mono, sgrid,
-                              prep.accuracy, groups))
-    lensed = None
-    if model.lensed:
-        lensed = np.asarray(_jit_call(model, 'lens_plane', mono))
+    return sgrid, _program("source_plane_images", _source_plane_images, mono, sgrid,
+                           prep.accuracy, groups)
+
+
+def _write_hr(prep: Prepared, out: Path, hr, launched, lensed):
+    """High-resolution unlensed (`_launch_hr`'s) and lensed (the band render's) images
+    written to out/hr."""
+    scene = prep.scene
+    model = prep.model
+    waves = scene.output.hr_rgb_um
+    _, names, unit = hr
+    sgrid, unl = launched
+    unl = np.asarray(unl)
+    lensed = None if lensed is None else np.asarray(lensed)
+    hr_dir = out / "hr"
+    hr_dir.mkdir(exist_ok=True)
     for k, name in enumerate(names):
         hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
         io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),

@@ -19,6 +19,7 @@ Matplotlib runs on the Agg backend; nothing here opens a window.
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,12 @@ import numpy as np
 __all__ = ["rgb_array", "save_composite", "draw_sky", "save_sky_figure", "nice_length", "extent_of_wcs",
            "extent_of_grid", "crop_to_light", "rgb_title", "compass_directions",
            "hr_channel_names"]
+
+
+# pyplot's state is shared by the process: figures are drawn and saved one at a time, so
+# that threads (the pipeline writes the high-resolution products in one of its own) may call
+# save_sky_figure side by side; the arrays they show are made outside the lock.
+_FIGURE_LOCK = threading.RLock()
 
 
 def _pyplot():
@@ -258,6 +265,12 @@ def draw_sky(ax, image, extent, *, wcs=None, title=None, circles=(), curves=(), 
 
 def save_sky_figure(path, image, extent, *, min_px=600, dpi=110, caption=None, **kw) -> Path:
     """One decorated panel (see draw_sky) as a PNG whose image area is at least min_px across."""
+    with _FIGURE_LOCK:
+        return _save_sky_figure(path, image, extent, min_px=min_px, dpi=dpi, caption=caption,
+                                **kw)
+
+
+def _save_sky_figure(path, image, extent, *, min_px, dpi, caption, **kw) -> Path:
     from .io import atomic_write
 
     plt = _pyplot()

@@ -1,14 +1,19 @@
 """Wall time of pipeline stages, split into compilation and running.
 
 JAX reports each tracing, lowering and XLA compilation (or persistent-cache load) as a
-time span (`jax.monitoring`). `StageClock` collects those spans while it is open and,
-per stage, counts as "compile" the union of the spans inside the stage (a jit traced
-inside another's tracing is counted once) and as "run" the rest of the stage's wall time.
+time span (`jax.monitoring`), in the thread that does the work. `StageClock` collects
+those spans while a stage is open and, per stage, counts as "compile" the union of the
+spans inside the stage *in the stage's own thread* (a jit traced inside another's tracing
+is counted once) and as "run" the rest of the stage's wall time. Stages may run side by
+side in several threads (the pipeline loads and launches programs in the background while
+it writes): each is timed in its own thread, so their totals can add up to more than the
+wall time of the run.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 
 import jax.monitoring as monitoring
@@ -34,31 +39,40 @@ class StageClock:
 
     ``clock = StageClock(); with clock.stage("render"): ...`` then
     ``clock.split()`` → {stage: {"total": s, "compile": s, "run": s}}. JAX's spans are
-    listened to only while a stage is open.
+    listened to only while some stage is open; a stage counts the spans of its own thread.
     """
 
     def __init__(self):
-        self._spans = []
-        self._stages = []          # (name, start, end), in time.time() seconds as JAX's spans
+        self._spans = []           # (thread id, start, end)
+        self._stages = []          # (name, thread id, start, end), in time.time() seconds as JAX's spans
+        self._lock = threading.Lock()
+        self._open = 0
 
     def _listener(self, event, start, end, **_):
         if event in COMPILE_EVENTS:
-            self._spans.append((start, end))
+            self._spans.append((threading.get_ident(), start, end))
 
     @contextlib.contextmanager
     def stage(self, name: str):
-        monitoring.register_event_time_span_listener(self._listener)
+        with self._lock:
+            if self._open == 0:
+                monitoring.register_event_time_span_listener(self._listener)
+            self._open += 1
         start = time.time()
         try:
             yield
         finally:
-            self._stages.append((name, start, time.time()))
-            monitoring.unregister_event_time_span_listener(self._listener)
+            self._stages.append((name, threading.get_ident(), start, time.time()))
+            with self._lock:
+                self._open -= 1
+                if self._open == 0:
+                    monitoring.unregister_event_time_span_listener(self._listener)
 
     def split(self, digits: int = 3) -> dict:
         out = {}
-        for name, start, end in self._stages:
-            inside = [(max(s, start), min(e, end)) for s, e in self._spans if e > start and s < end]
+        for name, tid, start, end in self._stages:
+            inside = [(max(s, start), min(e, end)) for t, s, e in self._spans
+                      if t == tid and e > start and s < end]
             comp = min(_union_length(inside), end - start)
             out[name] = {"total": round(end - start, digits), "compile": round(comp, digits),
                          "run": round(end - start - comp, digits)}

@@ -134,3 +134,22 @@ def test_thin_edge_on_disk_through_simulate_matches_an_independent_renderer(tmp_
     ref *= 10 ** (-0.4 * (22.0 - h["ZP_AB"]))
     assert img.sum() == pytest.approx(ref.sum(), rel=1e-3)
     assert np.max(np.abs(img - ref)) <= 3e-3 * ref.max()
+
+
+def test_no_high_resolution_output_costs_nothing(tmp_path, monkeypatch):
+    """output.hr = false: no high-resolution photometry, program or thread work at all."""
+    import dataclasses
+
+    from clumpylen_jax import scene as sc
+
+    def refuse(*a, **k):
+        raise AssertionError("high-resolution work for a scene that drops it")
+
+    for name in ("_hr_source", "_launch_hr", "_write_hr", "_monochromatic_source",
+                 "_source_plane_images"):
+        monkeypatch.setattr(pipeline, name, refuse)
+    s = sc.load_scene("single-sersic")
+    s = dataclasses.replace(s, output=dataclasses.replace(s.output, hr=False))
+    summary = pipeline.simulate(s, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "hr").exists() and summary["hr"] is None
+    assert not any("high-resolution" in stage for stage in summary["timings_split_s"])

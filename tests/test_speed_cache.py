@@ -107,7 +107,8 @@ def test_cli_cache_on_off_same_images_and_prints_the_split(capsys, monkeypatch, 
     monkeypatch.delenv("CLUMPYLEN_NO_CACHE", raising=False)
     assert main(["simulate", "single-sersic", "--out", str(tmp_path / "on")]) == 0
     out = capsys.readouterr().out
-    assert "time split: compile" in out and "files bands/: F200W.fits" in out
+    assert "time split (stages summed over the main and background threads): compile" in out \
+        and "files bands/: F200W.fits" in out
     assert any((tmp_path / "cache" / "jax").iterdir())       # programs were kept
     assert main(["simulate", "single-sersic", "--out", str(tmp_path / "off"), "--no-cache"]) == 0
     assert "compilation cache off" in capsys.readouterr().out
