@@ -78,7 +78,10 @@ def auto_starts(observations, frame, scene) -> dict:
                   clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps)
     names = {f.name for f in dataclasses.fields(AutoOptions)}
     auto = fit_without_truth(make_model_factory(observations, frame, opts),
-                             [o.data for o in observations], [o.variance for o in observations],
+                             # with a noise model, σ² from the data (rms² + max(d, 0)/t): its
+                             # rms² alone would turn every bright knot into a clump
+                             [o.data for o in observations],
+                             [o.variance_for(np.where(o.mask, o.data, 0.0)) for o in observations],
                              [o.mask for o in observations],
                              zeropoints_ab={o.name: o.zeropoint_ab for o in observations},
                              options=AutoOptions(**{k: v for k, v in wanted.items() if k in names}))
