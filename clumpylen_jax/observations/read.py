@@ -26,7 +26,8 @@ from .units import resolve_units
 
 _PIXEL_KEYS = ("PIXSCALE", "PIXELSCL", "PIXSCAL", "PIXSIZE")
 _BKG_RMS_KEYS = ("BKG_RMS", "BKGRMS", "BACK_RMS", "SKY_RMS", "SKYRMS")
-# σ above this many times the median σ of the band marks a pixel left out: pipelines flag
+# σ above this many times a typical σ of the band (its 10th percentile: flagged pixels may be
+# most of a cutout, e.g. off the detector, so not the median) marks a pixel left out: pipelines flag
 # bad pixels with σ = 1e10, 1e30 or the float maximum rather than NaN. No real pixel comes
 # near it (a saturated star's Poisson σ is ~10³ × the sky's), and keeping such pixels would
 # count them as degrees of freedom that carry no information (χ²/dof biased low) and
@@ -270,12 +271,12 @@ def noise_from_header(noise: dict, header):
 
 
 def huge_sigma(var: np.ndarray) -> np.ndarray:
-    """True where σ exceeds HUGE_SIGMA_FACTOR × the median σ of the finite positive ones
+    """True where σ exceeds HUGE_SIGMA_FACTOR × the 10th percentile of the finite positive σ
     (or is infinite): the pixels a pipeline flagged with a huge σ."""
     ok = np.isfinite(var) & (var > 0)
     if not np.any(ok):
         return ~ok
-    limit = HUGE_SIGMA_FACTOR**2 * float(np.median(var[ok]))
+    limit = HUGE_SIGMA_FACTOR**2 * float(np.percentile(var[ok], 10.0))
     return ~np.isfinite(var) | (var > limit)
 
 
