@@ -88,7 +88,11 @@ def auto_starts(observations, frame, scene) -> dict:
     cl = auto.state.source.clumps
     if cl is None or cl.count == 0:
         return None
-    return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float)}
+    # the whole optimum of the counting fit starts the joint fit: host, background and fluxes
+    # too, so fit_observations skips its host-only stage (one compile and one fit fewer)
+    return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float),
+            "flux": np.asarray(cl.flux, float), "host": auto.state.source.bulge,
+            "background": np.asarray(auto.state.background_counts_per_s, float)}
 
 
 def fit_observation_scene(scene, out_dir=None, *, progress=None):
