@@ -102,17 +102,26 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         scene = load_observation_scene(str(scene))
     t0 = time.perf_counter()
     obs, frame = read_scene_data(scene)
+    read_s = time.perf_counter() - t0
     opts = scene.fit
     starts = None
     if opts.clumps == "auto":
+        if progress:    # the longest stage: say so before it starts
+            progress(f"read {len(obs)} bands in {read_s:.1f} s; finding and counting clumps "
+                     f"(auto, up to {opts.max_clumps})")
         starts = auto_starts(obs, frame, scene)
+        if progress:
+            progress(f"auto: {0 if starts is None else len(starts['phi'])} clumps in "
+                     f"{time.perf_counter() - t0 - read_s:.1f} s; joint fit")
     elif opts.clumps != "none":
         starts = catalogue_starts(opts.clumps, frame)
-    read_s = time.perf_counter() - t0
-    if progress:
+    starts_s = time.perf_counter() - t0 - read_s
+    if progress and opts.clumps != "auto":
         progress(f"read {len(obs)} bands in {read_s:.1f} s; fitting")
     fit = fit_observations(obs, frame, opts, starts)
     fit.timings_s["read"] = round(read_s, 3)
+    fit.timings_s["clump_starts" if opts.clumps != "auto" else "auto"] = round(starts_s, 3)
+    fit.timings_s["command_total"] = round(time.perf_counter() - t0, 3)
     table = clump_rows(fit, obs, frame, scene)
     host = host_summary(fit, obs, frame)
     files = []
