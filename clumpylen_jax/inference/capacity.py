@@ -35,9 +35,14 @@ def _solve(model, data, param, u0, active, rtol, max_steps):
 
 @eqx.filter_jit
 def solve_batch(model, data, param, u0s, actives, rtol, max_steps):
-    """Levenberg–Marquardt (`lm.py`) from each start u0s[s] with mask actives[s], vmapped:
-    (u [S, P], ln L [S], converged [S], steps [S])."""
-    return jax.vmap(lambda u0, a: _solve(model, data, param, u0, a, rtol, max_steps))(u0s, actives)
+    """Levenberg–Marquardt (`lm.py`) from each start u0s[s] with mask actives[s], one start
+    after the other (lax.map): (u [S, P], ln L [S], converged [S], steps [S]).
+
+    Not vmapped: a vmapped solve holds every start's Jacobian intermediates at once (a
+    3-band 120² fit with 20 slots and 4 starts reached 10.8 GB and was killed) and runs
+    every start for as many steps as the slowest; on a CPU the batch bought no speed."""
+    return jax.lax.map(lambda ua: _solve(model, data, param, ua[0], ua[1], rtol, max_steps),
+                       (u0s, actives))
 
 
 def _solve_local(model, data, param, u, idx, active, rtol, max_steps):
@@ -51,8 +56,8 @@ def _solve_local(model, data, param, u, idx, active, rtol, max_steps):
 def solve_local_batch(model, data, param, us, idxs, actives, rtol, max_steps):
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
     step is K Jacobian columns (host, background and a few clumps), not the capacity's."""
-    return jax.vmap(lambda u, i, a: _solve_local(model, data, param, u, i, a, rtol, max_steps))(
-        us, idxs, actives)
+    return jax.lax.map(lambda uia: _solve_local(model, data, param, *uia, rtol, max_steps),
+                       (us, idxs, actives))     # one start at a time: see solve_batch
 
 
 @eqx.filter_jit

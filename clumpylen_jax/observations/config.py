@@ -152,6 +152,11 @@ def _observation(t: dict, base: Path, k: int) -> ObservationSpec:
     for key in ("pixel_arcsec", "zeropoint_ab", "psf_pixel_arcsec", "exptime_s"):
         if key in d and not _num(d[key]):
             raise ConfigError(f"{where}.{key}", d[key], "a number")
+    pm = d.get("pixel_matrix_arcsec")
+    if pm is not None and not (isinstance(pm, list) and len(pm) == 2 and all(
+            isinstance(r, list) and len(r) == 2 and all(_num(x) for x in r) for r in pm)):
+        raise ConfigError(f"{where}.pixel_matrix_arcsec", pm,
+                          "[[E/x, E/y], [N/x, N/y]]: four numbers, arcsec per pixel")
     if "noise" in d and not isinstance(d["noise"], dict):
         raise ConfigError(f"{where}.noise", d["noise"], "{ background_rms = ..., exptime_s = ... }")
     return ObservationSpec(**d)

@@ -11,7 +11,9 @@
 2. starts, never from any truth: the host from the light's moments (centre,
    second moments → R_e, q, PA; total flux per band), n = 1; clumps from
    `clump_starts` (φ positions, optional R_e) with fluxes from the residual of the
-   host-only fit in a 5 × 5-pixel box.
+   host-only fit in a 5 × 5-pixel box. When `clump_starts` carries a fitted "host"
+   (and "flux", "background": the auto fit's optimum) the joint fit starts there and
+   the host-only stage is skipped.
 3. stage "host": host + background by Levenberg–Marquardt (lm.py); stage "joint":
    host, clumps (flux per band, centre, R_e [, q, PA]) and background together. With
    a noise model, σ² = rms² + μ/t is refreshed from the model and the joint fit
@@ -114,6 +116,19 @@ def host_start(observations, frame) -> Sersic:
 def _host_re_bounds(frame):
     g0 = frame.grids[0]
     return 0.5 * min(g.pixel_arcsec for g in frame.grids), 0.5 * np.hypot(*g0.shape) * g0.pixel_arcsec
+
+
+def host_within_bounds(host: Sersic, frame) -> Sersic:
+    """A host start (e.g. the auto fit's, fitted under other bounds) moved just inside this
+    fit's bounds: a bounded transform has no inverse on its edge."""
+    lo, hi = _host_re_bounds(frame)
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    inside = lambda v, a, b: f(np.clip(np.asarray(v, float), a + 1e-6 * (b - a), b - 1e-6 * (b - a)))  # noqa: E731
+    flux = np.asarray(host.flux, float)     # positive here (log transform); free in auto
+    return Sersic(flux=f(np.maximum(flux, 1e-6 * np.max(np.abs(flux)) + 1e-30)),
+                  re_arcsec=inside(host.re_arcsec, lo, hi), n=inside(host.n, *HOST_N),
+                  q=inside(host.q, HOST_Q_MIN, 1.0), pa_rad=f(host.pa_rad),
+                  center_arcsec=f(host.center_arcsec))
 
 
 def _clumps(centers, flux, re, options) -> Optional[Clumps]:
@@ -257,7 +272,11 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
     nb = len(observations)
     bg = np.zeros(nb)
     mu = None
-    if host is not None:
+    warm = clump_starts is not None and clump_starts.get("host") is not None and host is not None
+    if warm:    # a host already fitted with these clumps (auto): no host-only stage
+        host = host_within_bounds(clump_starts["host"], frame)
+        bg = np.asarray(clump_starts.get("background", bg), float)
+    elif host is not None:
         t0 = time.perf_counter()
         src = Source(bulge=host)
         model = make_model(src)
@@ -278,7 +297,8 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
         pix = min(g.pixel_arcsec for g in frame.grids)
         re0 = np.where(np.isfinite(re0), re0, pix)
         re0 = np.clip(re0, options.clump_re_min_arcsec * 1.01, options.clump_re_max_arcsec * 0.99)
-        flux0 = _clump_fluxes(observations, frame, phi, mu)
+        flux0 = (np.asarray(clump_starts["flux"], float).reshape(n, nb)
+                 if clump_starts.get("flux") is not None else _clump_fluxes(observations, frame, phi, mu))
         src = Source(bulge=host, clumps=_clumps(phi, flux0, re0, options))
     else:
         src = Source(bulge=host)

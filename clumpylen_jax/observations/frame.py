@@ -8,7 +8,11 @@ Bands must share one orientation (a fit is single-orientation: resample a
 rotated band first); the WCS may be rotated on the sky, and positions are turned
 into θ (DESIGN.md: θ1 West, θ2 North, relative to the first observation's centre)
 and RA/Dec through it. Without a celestial WCS the cutouts are taken to share
-their centre and θ = φ (pixel x taken as West, y as North: say so when reporting).
+their centre, and θ comes from a pixel-to-angle matrix where the data give one
+(`pixel_matrix_arcsec`, or the header's PIX2A11..PIX2A22: a CD matrix in arcsec,
+East and North per pixel x and y, as lenstronomy's `transform_pix2angle`), else
+θ = φ (pixel x taken as West, y as North: say so when reporting). The model is
+rendered on the data's pixels either way: a rotation only turns φ into θ.
 """
 
 from __future__ import annotations
@@ -50,13 +54,45 @@ def wcs_pixel_arcsec(wcs, where: str) -> float:
     return 0.5 * (sx + sy)
 
 
+def check_pixel_matrix(m, pixel_arcsec, setting: str):
+    """The 2 × 2 pixel-to-angle matrix `m` (arcsec: [[E/x, E/y], [N/x, N/y]]) as a tuple of
+    tuples; ConfigError unless it has square, orthogonal pixels of side `pixel_arcsec` (when
+    given) and the parity of the sky (det < 0: a mirror image is no sky image)."""
+    a = np.asarray(m, float) if m is not None else None
+    ok = a is not None and a.shape == (2, 2) and np.all(np.isfinite(a))
+    if ok:
+        c0, c1 = np.hypot(*a[:, 0]), np.hypot(*a[:, 1])
+        s = 0.5 * (c0 + c1)
+        ok = (s > 0 and abs(c0 - c1) <= 1e-3 * s and abs(a[:, 0] @ a[:, 1]) <= 1e-3 * s * s
+              and np.linalg.det(a) < 0)
+        if ok and pixel_arcsec is not None and abs(s - pixel_arcsec) > 1e-3 * pixel_arcsec:
+            raise ConfigError(setting, np.round(a, 8).tolist(),
+                              f"a matrix whose pixel side ({s:.6g}\") matches the pixel scale "
+                              f"({pixel_arcsec:.6g}\")")
+    if not ok:
+        raise ConfigError(setting, m, "[[E/x, E/y], [N/x, N/y]] in arcsec per pixel (a CD matrix "
+                          "× 3600): square orthogonal pixels, sky parity (det < 0)")
+    return tuple(tuple(float(v) for v in row) for row in a)
+
+
+def theta_rotation(frame) -> np.ndarray:
+    """R [2, 2]: θ = R φ for a band without a celestial WCS (identity without a matrix)."""
+    m = getattr(frame, "pixel_matrix_arcsec", None)
+    if m is None:
+        return np.eye(2)
+    a = np.asarray(m, float)
+    return np.diag([-1.0, 1.0]) @ a / np.sqrt(abs(np.linalg.det(a)))   # East → West = θ1
+
+
 @dataclasses.dataclass(frozen=True)
 class BandFrame:
-    """One band's pixels: shape, pixel side (arcsec) and celestial WCS (or None)."""
+    """One band's pixels: shape, pixel side (arcsec), celestial WCS (or None), and without a
+    WCS the pixel-to-angle matrix (arcsec, CD convention; None: x West, y North)."""
 
     shape: tuple
     pixel_arcsec: float
     wcs: Optional[object] = dataclasses.field(default=None, compare=False)
+    pixel_matrix_arcsec: Optional[tuple] = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +140,7 @@ class FitFrame:
     def theta(self, phi):
         """θ (arcsec, DESIGN.md frame) of φ [..., 2], relative to the first band's centre."""
         if self.reference.wcs is None:
-            return np.asarray(phi, float)
+            return np.asarray(phi, float) @ theta_rotation(self.reference).T
         from ..io import radec_to_theta
         ra, dec = self.radec(phi)
         t1, t2 = radec_to_theta(ra, dec, self.center_radec())
@@ -121,7 +157,7 @@ class FitFrame:
     def phi_of_theta(self, theta):
         theta = np.asarray(theta, float)
         if self.reference.wcs is None:
-            return theta
+            return theta @ theta_rotation(self.reference)     # R is orthogonal: R⁻¹ = Rᵀ
         from ..io import theta_to_radec
         ra, dec = theta_to_radec(theta[..., 0], theta[..., 1], self.center_radec())
         return self.phi_of_radec(ra, dec)
@@ -168,6 +204,12 @@ def fit_frame(frames, names, files=None) -> FitFrame:
     grids = []
     for k, f in enumerate(frames):
         ny, nx = f.shape
+        if f.wcs is None and np.max(np.abs(theta_rotation(f) - theta_rotation(ref))) > ORIENTATION_TOL:
+            raise ConfigError(f"observations[{names[k]}] ({files[k]})",
+                              "a pixel_matrix_arcsec (PIX2A) of another orientation than "
+                              f"observations[{names[0]}]'s",
+                              "bands of one orientation (resample this band onto the first "
+                              "one's axes)")
         if f.wcs is None or k == 0:
             x0 = -(nx - 1) / 2.0 * f.pixel_arcsec
             y0 = -(ny - 1) / 2.0 * f.pixel_arcsec

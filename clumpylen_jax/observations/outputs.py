@@ -16,6 +16,10 @@ def _wcs_header(ob, frame_band):
     if frame_band.wcs is not None:
         h.update(frame_band.wcs.to_header())
     h["PIXSCALE"] = (frame_band.pixel_arcsec, "arcsec/pixel")
+    if frame_band.pixel_matrix_arcsec is not None:     # the orientation the fit used, complete
+        for i, row in enumerate(frame_band.pixel_matrix_arcsec, 1):
+            for j, v in enumerate(row, 1):
+                h[f"PIX2A{i}{j}"] = (v, "pixel-to-angle matrix (arcsec; East, North)")
     h["FILTER"] = ob.name
     h["BUNIT"] = ob.units
     h["ZP_AB"] = (ob.zeropoint_ab, "AB mag of one data unit per pixel")
@@ -146,12 +150,19 @@ def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None)
                             "n_pixels_used": int(ob.mask.sum()),
                             "grid_origin_arcsec": [g.x0_arcsec, g.y0_arcsec],
                             "psf": None if ob.psf is None else ob.psf.source,
-                            "noise_model": ob.noise_exptime_s is not None}
+                            "noise_model": ob.noise_exptime_s is not None,
+                            "noise": ob.noise_how,
+                            "orientation": ob.frame_how,
+                            "pixel_matrix_arcsec": None if ob.frame.pixel_matrix_arcsec is None
+                            else [list(r) for r in ob.frame.pixel_matrix_arcsec],
+                            "n_pixels_masked": int((~ob.mask).sum())}
                   for ob, g in zip(observations, frame.grids)},
         "frame": {"wcs": frame.reference.wcs is not None,
                   "center_radec_deg": frame.center_radec(),
                   "theta": "DESIGN.md θ (West, North) from the WCS" if frame.reference.wcs
-                  is not None else "pixel axes (no WCS): x taken as West, y as North"},
+                  is not None else "DESIGN.md θ (West, North) from the pixel matrix"
+                  if frame.reference.pixel_matrix_arcsec is not None
+                  else "pixel axes (no WCS): x taken as West, y as North"},
         "fit_options": {k: getattr(scene.fit, k) for k in scene.fit.__dataclass_fields__},
         "lens": None if scene.lens is None else {"convergence": scene.lens.convergence,
                                                  "shear": list(scene.lens.shear),

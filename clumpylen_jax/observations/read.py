@@ -21,10 +21,18 @@ from typing import Optional
 import numpy as np
 
 from ..errors import ConfigError
-from .frame import BandFrame, celestial_wcs, wcs_pixel_arcsec
+from .frame import BandFrame, celestial_wcs, check_pixel_matrix, wcs_pixel_arcsec
 from .units import resolve_units
 
 _PIXEL_KEYS = ("PIXSCALE", "PIXELSCL", "PIXSCAL", "PIXSIZE")
+_BKG_RMS_KEYS = ("BKG_RMS", "BKGRMS", "BACK_RMS", "SKY_RMS", "SKYRMS")
+# σ above this many times a typical σ of the band (its 10th percentile: flagged pixels may be
+# most of a cutout, e.g. off the detector, so not the median) marks a pixel left out: pipelines flag
+# bad pixels with σ = 1e10, 1e30 or the float maximum rather than NaN. No real pixel comes
+# near it (a saturated star's Poisson σ is ~10³ × the sky's), and keeping such pixels would
+# count them as degrees of freedom that carry no information (χ²/dof biased low) and
+# square σ towards overflow.
+HUGE_SIGMA_FACTOR = 1.0e6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +51,7 @@ class ObservationSpec:
     psf_pixel_arcsec: Optional[float] = None
     psf_effective: Optional[bool] = None
     pixel_arcsec: Optional[float] = None
+    pixel_matrix_arcsec: Optional[list] = None   # without a WCS: [[E/x, E/y], [N/x, N/y]] arcsec
     units: Optional[str] = None
     zeropoint_ab: Optional[float] = None
     exptime_s: Optional[float] = None
@@ -69,6 +78,8 @@ class Observation:
     psf: Optional[object] = None     # psf.PSF
     noise_exptime_s: Optional[float] = None   # noise model: σ² = variance + max(μ, 0)/t
     instrument: Optional[str] = None
+    noise_how: str = ""              # where σ came from (summary.json)
+    frame_how: str = ""              # where the orientation came from (summary.json)
 
     def variance_for(self, model=None):
         """σ² for the likelihood: the map, plus the model's Poisson term with a noise model."""
@@ -137,19 +148,55 @@ def _merged_header(hdul, idx):
     return h
 
 
+_PIX2A = ("PIX2A11", "PIX2A12", "PIX2A21", "PIX2A22")
+
+
+def header_pixel_matrix(header, where, path):
+    """(matrix or None, how): the PIX2A11..PIX2A22 pixel-to-angle matrix of a header (arcsec,
+    [[E/x, E/y], [N/x, N/y]]). With only the first row (PIX2A11, PIX2A12) the second follows
+    from square pixels and the sky's parity: (PIX2A12, −PIX2A11) — the one orthogonal
+    completion with det < 0 (a sky image is never mirrored); it is reported as completed."""
+    have = [k for k in _PIX2A if k in header]
+    if not have:
+        return None, None
+    try:
+        v = {k: float(header[k]) for k in have}
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}.pixel_matrix_arcsec", {k: header[k] for k in have},
+                          f"numbers in {', '.join(_PIX2A)} of {path}") from None
+    if len(have) == 4:
+        return [[v["PIX2A11"], v["PIX2A12"]], [v["PIX2A21"], v["PIX2A22"]]], "header PIX2A11..PIX2A22"
+    if set(have) == {"PIX2A11", "PIX2A12"}:
+        a, b = v["PIX2A11"], v["PIX2A12"]
+        return [[a, b], [b, -a]], "header PIX2A11, PIX2A12; second row from square pixels, sky parity"
+    raise ConfigError(f"{where}.pixel_matrix_arcsec", f"only {', '.join(have)} in {path}",
+                      f"all of {', '.join(_PIX2A)} in the header, or pixel_matrix_arcsec in the "
+                      "[[observations]] table")
+
+
 def _pixel_frame(spec, header, shape, where):
+    """BandFrame of the image, and how its orientation was found (for summary.json)."""
     wcs = celestial_wcs(header)
     if wcs is not None:
         pix = wcs_pixel_arcsec(wcs, where)
-        return BandFrame(tuple(shape), pix, wcs)
+        return BandFrame(tuple(shape), pix, wcs), "celestial WCS"
     pix = spec.pixel_arcsec
     if pix is None:
         pix = next((float(header[k]) for k in _PIXEL_KEYS if k in header), None)
+    if spec.pixel_matrix_arcsec is not None:
+        matrix, how = spec.pixel_matrix_arcsec, "pixel_matrix_arcsec (scene)"
+    else:
+        matrix, how = header_pixel_matrix(header, where, spec.image)
+    if matrix is not None:
+        matrix = check_pixel_matrix(matrix, pix, f"{where}.pixel_matrix_arcsec")
+        if pix is None:
+            pix = float(np.sqrt(abs(np.linalg.det(np.asarray(matrix)))))
     if pix is None or not (math.isfinite(pix) and pix > 0):
         raise ConfigError(f"{where}.pixel_arcsec", pix,
                           f"a positive pixel scale in arcsec ({spec.image} has no celestial WCS "
                           "and no PIXSCALE keyword)")
-    return BandFrame(tuple(shape), float(pix), None)
+    return (BandFrame(tuple(shape), float(pix), None, matrix),
+            how or "no WCS, no pixel matrix: pixel x taken as West, y as North")
 
 
 def _variance(spec, hdul, data, header, scale, counts_per_unit, where):
@@ -163,6 +210,10 @@ def _variance(spec, hdul, data, header, scale, counts_per_unit, where):
             given, spec = ["error"], dataclasses.replace(spec, error="ERR")
         elif "WHT" in names:
             given, spec = ["weight"], dataclasses.replace(spec, weight="WHT")
+        elif any(k in header for k in _BKG_RMS_KEYS):
+            # a product that ships its noise model in the header (BKG_RMS [+ EXPTIME]) and no
+            # map: that model is the product's own statement of its noise, not a guess
+            given, spec = ["noise"], dataclasses.replace(spec, noise={})
         else:
             raise ConfigError(f"{where}.error", None,
                               f"an uncertainty for {spec.image} (no ERR or WHT HDU): error = "
@@ -171,11 +222,16 @@ def _variance(spec, hdul, data, header, scale, counts_per_unit, where):
     key = given[0]
     if key == "noise":
         nz = dict(spec.noise)
-        rms, t = nz.get("background_rms"), nz.get("exptime_s", header.get("EXPTIME"))
         bad = [k for k in nz if k not in ("background_rms", "exptime_s")]
         if bad:
             raise ConfigError(f"{where}.noise.{bad[0]}", nz[bad[0]], "background_rms, exptime_s")
-        for name, v in (("background_rms", rms), ("exptime_s", t)):
+        rms, t = noise_from_header(nz, header)
+        for name, v, keys in (("background_rms", rms, "/".join(_BKG_RMS_KEYS[:1])),
+                              ("exptime_s", t, "EXPTIME")):
+            if v is None:
+                raise ConfigError(f"{where}.noise.{name}", None,
+                                  f"a positive number (give it in the scene or add {keys} to the "
+                                  f"header of {spec.image})")
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ConfigError(f"{where}.noise.{name}", v, "a positive number")
         if counts_per_unit is None:
@@ -183,7 +239,9 @@ def _variance(spec, hdul, data, header, scale, counts_per_unit, where):
                               "a count-rate image (units e-/s or counts/s) for a Poisson noise "
                               "model; give an error or weight map for other units")
         var = np.full(data.shape, (float(rms) * scale) ** 2)
-        return var, float(t), f"noise model rms {rms}, exptime {t} s"
+        return var, float(t), (f"noise model: background rms {rms} (image units), exptime {t} s"
+                               f" ({'scene' if spec.noise else 'header'}"
+                               f"{' + header' if spec.noise and len(spec.noise) < 2 else ''})")
     arr, src = _plane(getattr(spec, key), hdul, spec.image, data.shape, where, key)
     use = np.isfinite(data)
     if key == "error":
@@ -192,14 +250,34 @@ def _variance(spec, hdul, data, header, scale, counts_per_unit, where):
                               "(NaN σ found); mask those pixels or fix the map")
         if np.any(arr < 0):
             raise ConfigError(f"{where}.error", src, "σ ≥ 0 (negative values found)")
-        with np.errstate(over="ignore"):
-            var = (arr * scale) ** 2
+        with np.errstate(over="ignore", invalid="ignore"):
+            var = (arr * scale) ** 2      # σ = 1e200 overflows to inf: masked below
         return var, None, f"{src} as sigma"
     if np.any(np.isnan(arr) & use) or np.any(arr < 0):
         raise ConfigError(f"{where}.weight", src, "inverse variances ≥ 0 and not NaN")
     with np.errstate(divide="ignore"):
         var = np.where(arr > 0, 1.0 / np.where(arr > 0, arr, 1.0), np.inf) * scale**2
     return var, None, f"{src} as inverse variance"
+
+
+def noise_from_header(noise: dict, header):
+    """(background_rms, exptime_s) of a noise model: the scene's values, each missing one from
+    the header (BKG_RMS or an alias; EXPTIME); None where neither gives it."""
+    rms = noise.get("background_rms")
+    if rms is None:
+        rms = next((header[k] for k in _BKG_RMS_KEYS if k in header), None)
+    t = noise.get("exptime_s", header.get("EXPTIME"))
+    return rms, t
+
+
+def huge_sigma(var: np.ndarray) -> np.ndarray:
+    """True where σ exceeds HUGE_SIGMA_FACTOR × the 10th percentile of the finite positive σ
+    (or is infinite): the pixels a pipeline flagged with a huge σ."""
+    ok = np.isfinite(var) & (var > 0)
+    if not np.any(ok):
+        return ~ok
+    limit = HUGE_SIGMA_FACTOR**2 * float(np.percentile(var[ok], 10.0))
+    return ~np.isfinite(var) | (var > limit)
 
 
 def _region_mask(path, frame: BandFrame, where):
@@ -224,12 +302,32 @@ def _region_mask(path, frame: BandFrame, where):
     return out
 
 
+def psf_hdu_of(spec, where):
+    """The PSF's HDU: `psf_hdu` if given; else the HDU named PSF when the file has one (HST and
+    JWST cutouts often carry it beside SCI: `psf` may then be the image file itself); else None
+    (the file's first image). The image file without a PSF HDU is an error: its SCI is no PSF."""
+    if spec.psf_hdu is not None or not Path(spec.psf).is_file():
+        return spec.psf_hdu
+    from astropy.io import fits
+    try:
+        with fits.open(spec.psf, memmap=False, ignore_missing_end=True) as hdul:
+            names = [h.name for h in hdul]
+    except Exception:
+        return None     # load_psf_fits names the unreadable file
+    if "PSF" in names:
+        return "PSF"
+    if Path(spec.psf).resolve() == Path(spec.image).resolve():
+        raise ConfigError(f"{where}.psf_hdu", None, f"the HDU of {spec.psf} that holds the PSF "
+                          f"(the file is the image itself; it has {names})")
+    return None
+
+
 def _read_psf(spec, where, pixel_arcsec):
     if spec.psf is None:
         return None
     from ..psf import load_psf_fits
     try:
-        psf = load_psf_fits(spec.psf, hdu=spec.psf_hdu, pixel_arcsec=spec.psf_pixel_arcsec,
+        psf = load_psf_fits(spec.psf, hdu=psf_hdu_of(spec, where), pixel_arcsec=spec.psf_pixel_arcsec,
                             effective=spec.psf_effective)
     except ConfigError as exc:
         raise ConfigError(f"{where}.{exc.setting}", exc.value,
@@ -248,14 +346,14 @@ def read_observation(spec: ObservationSpec) -> Observation:
         idx = _image_hdu(hdul, spec.hdu, spec.image, where, "image")
         header = _merged_header(hdul, idx)
         data = np.asarray(hdul[idx].data, float)
-        frame = _pixel_frame(spec, header, data.shape, where)
+        frame, frame_how = _pixel_frame(spec, header, data.shape, where)
         u = resolve_units(header, units=spec.units, zeropoint_ab=spec.zeropoint_ab,
                           pixel_arcsec=frame.pixel_arcsec, exptime_s=spec.exptime_s,
                           where=f"{where} ({spec.image})")
-        var, noise_t, _ = _variance(spec, hdul, data, header, u["scale"],
+        var, noise_t, noise_how = _variance(spec, hdul, data, header, u["scale"],
                                     u["counts_per_unit"], where)
     data = data * u["scale"]
-    mask = np.isfinite(data) & np.isfinite(var) & (var > 0)
+    mask = np.isfinite(data) & np.isfinite(var) & (var > 0) & ~huge_sigma(var)
     if noise_t is not None:
         mask = np.isfinite(data)
     if spec.mask is not None:
@@ -269,4 +367,4 @@ def read_observation(spec: ObservationSpec) -> Observation:
     var = np.where(mask, var, 1.0)
     psf = _read_psf(spec, where, frame.pixel_arcsec)
     return Observation(spec.filter, spec.image, data, var, mask, frame, u["zeropoint_ab"],
-                       str(u["units"]), u["how"], psf, noise_t, spec.instrument)
+                       str(u["units"]), u["how"], psf, noise_t, spec.instrument, noise_how, frame_how)
