@@ -77,7 +77,7 @@ def check_pixel_matrix(m, pixel_arcsec, setting: str):
 
 def theta_rotation(frame) -> np.ndarray:
     """R [2, 2]: θ = R φ for a band without a celestial WCS (identity without a matrix)."""
-    m = getattr(frame, "pixel_matrix_arcsec", None)
+    m = frame.pixel_matrix_arcsec
     if m is None:
         return np.eye(2)
     a = np.asarray(m, float)
