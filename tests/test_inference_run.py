@@ -15,12 +15,17 @@ from clumpylen_jax.source import Clumps, Source
 SRC = Source(clumps=Clumps(jnp.array([[-0.15, 0.05], [0.15, -0.05]]), jnp.array([[3.0], [2.0]]),
                            jnp.array([0.07, 0.06]), jnp.full(2, 0.5), jnp.array([0.8, 0.9]),
                            jnp.array([0.3, 1.0])))
+# every fit here starts away from the truth (fluxes × 0.7, centres moved by ~0.04"): the
+# truth makes the mock only
+START = eqx.tree_at(lambda s: (s.clumps.flux, s.clumps.center_arcsec), SRC,
+                    (SRC.clumps.flux * 0.7, SRC.clumps.center_arcsec + jnp.array([[0.03, -0.02],
+                                                                                  [-0.02, 0.03]])))
 
 
 def test_run_fit_emcee_writes_outputs(tmp_path):
     model = toy_model(SRC, toy_bands(1), npix=21)
     noisy, _, var = eqx.filter_jit(model.observe)(SRC, jax.random.key(0))
-    out = run_fit(model, SRC, {"B0": np.asarray(noisy[0])}, {"B0": np.asarray(var[0])},
+    out = run_fit(model, START, {"B0": np.asarray(noisy[0])}, {"B0": np.asarray(var[0])},
                   free={"clumps.flux": True, "clumps.center_arcsec": True}, method="emcee",
                   zeropoints_ab={"B0": 27.0}, out_dir=tmp_path, mcmc=dict(n_walkers=16, n_steps=200))
     names = sorted(p.name for p in tmp_path.iterdir())
@@ -40,7 +45,7 @@ def test_multistart_matches_lm():
     model = toy_model(SRC, toy_bands(1), npix=21)
     noisy, _, var = eqx.filter_jit(model.observe)(SRC, jax.random.key(1))
     data = make_data(model, noisy, var)
-    param = parametrize(make_state(SRC, 1), {"clumps.flux": True, "clumps.center_arcsec": True})
+    param = parametrize(make_state(START, 1), {"clumps.flux": True, "clumps.center_arcsec": True})
     lm = fit_map(model, data, param)
     ms = fit_map_multistart(model, data, param, jax.random.key(2), n_starts=3, scale=0.05)
     assert ms.starts_log_posterior.shape == (3,)
