@@ -22,7 +22,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
+from . import __version__, cosmology as cosmo_mod, io, model as model_mod, modelcache, photometry
 from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .builders import model_band
 from .cache import cache_enabled, cache_root
@@ -339,7 +339,6 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         from .preflight import check_memory
         check_memory(scene, field_arcsec=field, n_clumps=0 if table is None else len(table))
     with progress.stage("model (ray tracing)" if lens is not None else "model"):
-        from . import modelcache
         rays = cache_root() / "rays" if cache_enabled() else None
         model = modelcache.build(
             lambda *a, **k: model_mod.build_model(*a, ray_cache=rays, **k), source, bands,
@@ -445,8 +444,12 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
 def _launch_unlensed(prep: Prepared, prog: _Progress):
     """The unlensed band model and its images (launched, not waited for)."""
     with prog.stage("unlensed images (launch)"):
-        unl_model = model_mod.build_model(prep.source, prep.bands, lens=None,
-                                          accuracy=prep.accuracy, dtype=prep.dtype)
+        # kept like the lensed model (`modelcache`): its PSF kernels and their transforms
+        # are resampled and transformed again on every run otherwise (~0.5 s of CPU)
+        unl_model = modelcache.build(
+            model_mod.build_model, prep.source, prep.bands, lens=None,
+            folder=cache_root() / "models" if cache_enabled() else None,
+            accuracy=prep.accuracy, dtype=prep.dtype)
         return unl_model, _jit_call(unl_model, 'band_images', prep.source)
 
 
@@ -464,6 +467,9 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     """The stages of `simulate` after `prepare`: programs launched in `pool`, the
     high-resolution products written by `writer`, the rest here; returns the summary."""
     scene, model, table = prep.scene, prep.model, prep.catalog
+    # the writer thread has nothing to do until the band render is done: it imports meanwhile
+    # what writing needs, off the main thread's path
+    writer.submit(_import_writing_modules)
     later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
     hr = None
     if scene.output.hr:
@@ -501,6 +507,15 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     summary["accuracy"] = dataclasses.asdict(prep.accuracy)
     io.write_json(out / "summary.json", summary)
     return summary
+
+
+def _import_writing_modules():
+    """Import the modules the outputs are written with (FITS, WCS, the colour stretch,
+    matplotlib: ~1.5 s of a warm run's imports)."""
+    from astropy.io import fits  # noqa: F401
+    from astropy.visualization import make_lupton_rgb  # noqa: F401
+    from astropy.wcs import WCS  # noqa: F401
+    rgbimage._pyplot()
 
 
 def _render_bands(prep: Prepared, hr):
