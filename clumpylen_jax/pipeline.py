@@ -460,7 +460,7 @@ def _launch_magnifications(prep: Prepared, prog: _Progress):
 
 def _write_hr_stage(prep, prog, out, hr, later_hr, hr_lensed):
     with prog.stage("high-resolution images"):
-        return _write_hr(prep, out, hr, later_hr.result(), hr_lensed)
+        return _write_hr(prep, out, hr, later_hr, hr_lensed)
 
 
 def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start) -> dict:
@@ -678,37 +678,41 @@ def _hr_source_plane(prep: Prepared, mono):
                            prep.accuracy, groups)
 
 
-def _write_hr(prep: Prepared, out: Path, hr, launched, lensed):
-    """High-resolution unlensed (`_launch_hr`'s) and lensed (the band render's) images
-    written to out/hr."""
+def _write_hr(prep: Prepared, out: Path, hr, later, lensed):
+    """High-resolution lensed (the band render's) and unlensed (`later`: `_launch_hr`'s,
+    launched) images written to out/hr: the lensed ones first, while the source-plane
+    program may still run."""
     scene = prep.scene
     model = prep.model
     waves = scene.output.hr_rgb_um
     _, names, unit = hr
-    sgrid, unl = launched
-    unl = np.asarray(unl)
     lensed = None if lensed is None else np.asarray(lensed)
     hr_dir = out / "hr"
     hr_dir.mkdir(exist_ok=True)
+    rgb = rgbimage.hr_channel_names(names, waves, scene.output.rgb)  # red, green, blue
+    idx = [names.index(n) for n in rgb] if len(names) >= 3 else None
+    if lensed is not None:
+        wcs = _wcs_for(model.hr_grid, scene)
+        for k, name in enumerate(names):
+            hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
+            io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
+                                wcs=wcs, header=hdr)
+        if idx is not None:
+            title = rgbimage.rgb_title(rgb, False, kind="high resolution, lensed")
+            rgbimage.save_composite(hr_dir / "rgb_lensed.png", [lensed[k] for k in idx],
+                                    rgbimage.extent_of_grid(model.hr_grid), wcs=wcs, title=title)
+    sgrid, unl = later.result()
+    unl = np.asarray(unl)
+    wcs = _wcs_for(sgrid, scene)
     for k, name in enumerate(names):
         hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
         io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),
-                            wcs=_wcs_for(sgrid, scene), header=hdr)
-        if lensed is not None:
-            hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
-            io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
-                                wcs=_wcs_for(model.hr_grid, scene), header=hdr)
-    if len(names) >= 3:
-        rgb = rgbimage.hr_channel_names(names, waves, scene.output.rgb)  # red, green, blue
-        idx = [names.index(n) for n in rgb]
+                            wcs=wcs, header=hdr)
+    if idx is not None:
         title = rgbimage.rgb_title(rgb, False, kind="high resolution, unlensed")
-        rgbimage.save_composite(hr_dir / "rgb_unlensed.png", [unl[k] for k in idx], rgbimage.extent_of_grid(sgrid),
-                                wcs=_wcs_for(sgrid, scene), title=title, frame="β", crop=True)
-        if lensed is not None:
-            title = rgbimage.rgb_title(rgb, False, kind="high resolution, lensed")
-            rgbimage.save_composite(hr_dir / "rgb_lensed.png", [lensed[k] for k in idx],
-                                    rgbimage.extent_of_grid(model.hr_grid), wcs=_wcs_for(model.hr_grid, scene),
-                                    title=title)
+        rgbimage.save_composite(hr_dir / "rgb_unlensed.png", [unl[k] for k in idx],
+                                rgbimage.extent_of_grid(sgrid), wcs=wcs, title=title,
+                                frame="β", crop=True)
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
 
 
