@@ -2,12 +2,14 @@
 
 JAX's persistent compilation cache (`cache.py`) skips XLA's compilation, but every
 process still traces the Python model to a jaxpr, lowers it to StableHLO, serialises
-and hashes that module (its cache key) before it can look there: for the paper scene
-that is most of a second run's time. Keeping the lowered program (`jax.export`) skips
-the tracing, but not the rest: reading the module back, lowering the call around it and
-hashing it took ~2 s of a warm run. `call` keeps the compiled executable itself
+and hashes that module (its cache key) before it can look there. Keeping the lowered
+program (`jax.export`) skips the tracing, but not reading the module back, lowering the
+call around it and hashing it (~2 s of CPU over the paper scene's four programs on a
+loaded host). `call` keeps the compiled executable itself
 (`jax.experimental.serialize_executable`) under ``<cache>/programs/``, so that a later
-process loads it and calls it at once.
+process loads it and calls it at once. Loading stays proportional to the code's size
+(XLA links the executable's machine code): the band render's 13 MB takes ~3 s on a
+loaded 2-core host.
 
 What a file is keyed on (a SHA-256; any change gives a new name, so a stale program is
 never read): the program's name; the structure of its arguments (pytree definition,
