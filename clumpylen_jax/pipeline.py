@@ -469,7 +469,7 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     scene, model, table = prep.scene, prep.model, prep.catalog
     # the writer thread has nothing to do until the band render is done: it imports meanwhile
     # what writing needs, off the main thread's path
-    writer.submit(_import_writing_modules)
+    writer.submit(_import_writing_modules, bool(scene.output.rgb or scene.output.hr))
     later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
     hr = None
     if scene.output.hr:
@@ -509,13 +509,13 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     return summary
 
 
-def _import_writing_modules():
-    """Import the modules the outputs are written with (FITS, WCS, the colour stretch,
-    matplotlib: ~1.5 s of a warm run's imports)."""
+def _import_writing_modules(figures: bool):
+    """Import the modules the outputs are written with: FITS and WCS, and with `figures`
+    (colour composites asked for) matplotlib (~1 s of a warm run's imports in all)."""
     from astropy.io import fits  # noqa: F401
-    from astropy.visualization import make_lupton_rgb  # noqa: F401
     from astropy.wcs import WCS  # noqa: F401
-    rgbimage._pyplot()
+    if figures:
+        rgbimage._pyplot()
 
 
 def _render_bands(prep: Prepared, hr):

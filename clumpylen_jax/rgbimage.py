@@ -1,7 +1,7 @@
 """Colour composites and sky images people can read: stretch, axes, scale bar, compass.
 
-- `rgb_array(r, g, b)`: a Lupton et al. (2004) asinh composite (astropy) after
-  balancing the channels on the bright light (each channel divided by its median over
+- `rgb_array(r, g, b)`: a Lupton et al. (2004) asinh composite (astropy's
+  `make_lupton_rgb`, bit for bit) after balancing the channels on the bright light (each channel divided by its median over
   the brightest tenth of the pixels), so that the average colour of the object is neutral and
   its parts (old host, young clumps, arms) differ in colour as their spectra do;
   saturated pixels keep their hue (astropy scales a pixel by max(R, G, B), it does
