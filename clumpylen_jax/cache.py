@@ -7,8 +7,9 @@ One folder: ``$CLUMPYLEN_CACHE`` if set, else ``~/.cache/clumpylen_jax``. Inside
   constant), the compile options, the jax/jaxlib versions and the device; a changed
   scene structure, code, JAX version or machine gives a new key, never a stale hit.
   Entries are not removed by clumpylen (delete the folder to reclaim the space).
-- ``programs/``: traced and lowered programs (`programcache`, `jax.export`): a second
-  run skips Python tracing and lowering as well as XLA compilation;
+- ``programs/``: compiled executables of the pipeline's programs (`programcache`): a
+  second run skips Python tracing, lowering and the persistent cache's key hashing as
+  well as XLA compilation;
 - ``models/``: built scene models (`modelcache`): traced pixels, linearised clumps,
   rebinning operators (~160 MB for the paper scene);
 - ``psf/``: diffraction PSFs (`psf.default_cache_dir`);

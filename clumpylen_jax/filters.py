@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
+import importlib.util
 import os
 import pathlib
 import re
@@ -74,11 +75,12 @@ class Filter:
 
 
 def _sedpy_filter_dir() -> pathlib.Path:
-    try:
-        import sedpy
-    except ImportError as exc:  # pragma: no cover - sedpy is a dependency
-        raise ConfigError("filter", "built-in", "the astro-sedpy package to be installed") from exc
-    return pathlib.Path(sedpy.__file__).parent / "data" / "filters"
+    # located, not imported: `import sedpy` loads its observate module (~0.5 s), and only
+    # its data files are read here
+    spec = importlib.util.find_spec("sedpy")
+    if spec is None or not spec.submodule_search_locations:  # pragma: no cover - a dependency
+        raise ConfigError("filter", "built-in", "the astro-sedpy package to be installed")
+    return pathlib.Path(spec.submodule_search_locations[0]) / "data" / "filters"
 
 
 @functools.lru_cache(maxsize=1)

@@ -173,6 +173,14 @@ def _prepare(z, metallicity, sfh, sfh_duration_myr, dust_av, library, cosmology)
     return library, metallicity, d_l
 
 
+@functools.lru_cache(maxsize=32, typed=True)   # typed: 100.0 and np.float64(100.0) promote apart
+def _sfh_weights_program(library: SSPLibrary, sfh: str, sfh_duration_myr: float):
+    """sfh_weights on the library's ages as one jitted function (the ages are constants: op
+    by op it costs ~0.5 s a call), one per population kind, so that the calls of a run with
+    the same kind (magnitudes, then high-resolution fluxes) trace and load it once."""
+    return jax.jit(lambda a: sfh_weights(a, library.ages_myr, sfh, sfh_duration_myr))
+
+
 def _combine(mass_msun, age_myr, table, library, metallicity, sfh, sfh_duration_myr, mass_definition):
     """mass × (SFH weights · table), in the floating dtype of the inputs."""
     mass = jnp.asarray(mass_msun)
@@ -181,8 +189,7 @@ def _combine(mass_msun, age_myr, table, library, metallicity, sfh, sfh_duration_
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.result_type(float)
     mass, age = jnp.broadcast_arrays(mass.astype(dtype), age.astype(dtype))
-    # compiled as one (the library's ages are constants): op by op it costs ~0.5 s a call
-    w = jax.jit(lambda a: sfh_weights(a, library.ages_myr, sfh, sfh_duration_myr))(age)
+    w = _sfh_weights_program(library, sfh, sfh_duration_myr)(age)
     per_formed = w @ jnp.asarray(table, dtype=dtype)  # (..., n_out)
     if mass_definition == "surviving":
         surv = w @ jnp.asarray(library.surviving_fraction(metallicity), dtype=dtype)

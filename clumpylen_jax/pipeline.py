@@ -22,7 +22,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from . import __version__, cosmology as cosmo_mod, io, model as model_mod, photometry
+from . import __version__, cosmology as cosmo_mod, io, model as model_mod, modelcache, photometry
 from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .builders import model_band
 from .cache import cache_enabled, cache_root
@@ -339,7 +339,6 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
         from .preflight import check_memory
         check_memory(scene, field_arcsec=field, n_clumps=0 if table is None else len(table))
     with progress.stage("model (ray tracing)" if lens is not None else "model"):
-        from . import modelcache
         rays = cache_root() / "rays" if cache_enabled() else None
         model = modelcache.build(
             lambda *a, **k: model_mod.build_model(*a, ray_cache=rays, **k), source, bands,
@@ -445,8 +444,12 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
 def _launch_unlensed(prep: Prepared, prog: _Progress):
     """The unlensed band model and its images (launched, not waited for)."""
     with prog.stage("unlensed images (launch)"):
-        unl_model = model_mod.build_model(prep.source, prep.bands, lens=None,
-                                          accuracy=prep.accuracy, dtype=prep.dtype)
+        # kept like the lensed model (`modelcache`): its PSF kernels and their transforms
+        # are resampled and transformed again on every run otherwise (~0.5 s of CPU)
+        unl_model = modelcache.build(
+            model_mod.build_model, prep.source, prep.bands, lens=None,
+            folder=cache_root() / "models" if cache_enabled() else None,
+            accuracy=prep.accuracy, dtype=prep.dtype)
         return unl_model, _jit_call(unl_model, 'band_images', prep.source)
 
 
@@ -457,13 +460,16 @@ def _launch_magnifications(prep: Prepared, prog: _Progress):
 
 def _write_hr_stage(prep, prog, out, hr, later_hr, hr_lensed):
     with prog.stage("high-resolution images"):
-        return _write_hr(prep, out, hr, later_hr.result(), hr_lensed)
+        return _write_hr(prep, out, hr, later_hr, hr_lensed)
 
 
 def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start) -> dict:
     """The stages of `simulate` after `prepare`: programs launched in `pool`, the
     high-resolution products written by `writer`, the rest here; returns the summary."""
     scene, model, table = prep.scene, prep.model, prep.catalog
+    # the writer thread has nothing to do until the band render is done: it imports meanwhile
+    # what writing needs, off the main thread's path
+    writer.submit(_import_writing_modules, bool(scene.output.rgb or scene.output.hr))
     later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
     hr = None
     if scene.output.hr:
@@ -501,6 +507,15 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     summary["accuracy"] = dataclasses.asdict(prep.accuracy)
     io.write_json(out / "summary.json", summary)
     return summary
+
+
+def _import_writing_modules(figures: bool):
+    """Import the modules the outputs are written with: FITS and WCS, and with `figures`
+    (colour composites asked for) matplotlib (~1 s of a warm run's imports in all)."""
+    from astropy.io import fits  # noqa: F401
+    from astropy.wcs import WCS  # noqa: F401
+    if figures:
+        rgbimage._pyplot()
 
 
 def _render_bands(prep: Prepared, hr):
@@ -663,37 +678,41 @@ def _hr_source_plane(prep: Prepared, mono):
                            prep.accuracy, groups)
 
 
-def _write_hr(prep: Prepared, out: Path, hr, launched, lensed):
-    """High-resolution unlensed (`_launch_hr`'s) and lensed (the band render's) images
-    written to out/hr."""
+def _write_hr(prep: Prepared, out: Path, hr, later, lensed):
+    """High-resolution lensed (the band render's) and unlensed (`later`: `_launch_hr`'s,
+    launched) images written to out/hr: the lensed ones first, while the source-plane
+    program may still run."""
     scene = prep.scene
     model = prep.model
     waves = scene.output.hr_rgb_um
     _, names, unit = hr
-    sgrid, unl = launched
-    unl = np.asarray(unl)
     lensed = None if lensed is None else np.asarray(lensed)
     hr_dir = out / "hr"
     hr_dir.mkdir(exist_ok=True)
+    rgb = rgbimage.hr_channel_names(names, waves, scene.output.rgb)  # red, green, blue
+    idx = [names.index(n) for n in rgb] if len(names) >= 3 else None
+    if lensed is not None:
+        wcs = _wcs_for(model.hr_grid, scene)
+        for k, name in enumerate(names):
+            hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
+            io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
+                                wcs=wcs, header=hdr)
+        if idx is not None:
+            title = rgbimage.rgb_title(rgb, False, kind="high resolution, lensed")
+            rgbimage.save_composite(hr_dir / "rgb_lensed.png", [lensed[k] for k in idx],
+                                    rgbimage.extent_of_grid(model.hr_grid), wcs=wcs, title=title)
+    sgrid, unl = later.result()
+    unl = np.asarray(unl)
+    wcs = _wcs_for(sgrid, scene)
     for k, name in enumerate(names):
         hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
         io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),
-                            wcs=_wcs_for(sgrid, scene), header=hdr)
-        if lensed is not None:
-            hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
-            io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
-                                wcs=_wcs_for(model.hr_grid, scene), header=hdr)
-    if len(names) >= 3:
-        rgb = rgbimage.hr_channel_names(names, waves, scene.output.rgb)  # red, green, blue
-        idx = [names.index(n) for n in rgb]
+                            wcs=wcs, header=hdr)
+    if idx is not None:
         title = rgbimage.rgb_title(rgb, False, kind="high resolution, unlensed")
-        rgbimage.save_composite(hr_dir / "rgb_unlensed.png", [unl[k] for k in idx], rgbimage.extent_of_grid(sgrid),
-                                wcs=_wcs_for(sgrid, scene), title=title, frame="β", crop=True)
-        if lensed is not None:
-            title = rgbimage.rgb_title(rgb, False, kind="high resolution, lensed")
-            rgbimage.save_composite(hr_dir / "rgb_lensed.png", [lensed[k] for k in idx],
-                                    rgbimage.extent_of_grid(model.hr_grid), wcs=_wcs_for(model.hr_grid, scene),
-                                    title=title)
+        rgbimage.save_composite(hr_dir / "rgb_unlensed.png", [unl[k] for k in idx],
+                                rgbimage.extent_of_grid(sgrid), wcs=wcs, title=title,
+                                frame="β", crop=True)
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
 
 

@@ -1,11 +1,15 @@
-"""Traced and lowered programs kept on disk between runs (`jax.export`), keyed by content.
+"""Compiled programs kept on disk between runs, keyed by content.
 
 JAX's persistent compilation cache (`cache.py`) skips XLA's compilation, but every
-process still traces the Python model to a jaxpr and lowers it to StableHLO before it
-can look there: for the paper scene that is most of a second run's time. `call` keeps
-the lowered program itself (a `jax.export.Exported`, serialised) under
-``<cache>/programs/``, so that a later process deserialises it and goes straight to the
-(cached) executable.
+process still traces the Python model to a jaxpr, lowers it to StableHLO, serialises
+and hashes that module (its cache key) before it can look there. Keeping the lowered
+program (`jax.export`) skips the tracing, but not reading the module back, lowering the
+call around it and hashing it (~2 s of CPU over the paper scene's four programs on a
+loaded host). `call` keeps the compiled executable itself
+(`jax.experimental.serialize_executable`) under ``<cache>/programs/``, so that a later
+process loads it and calls it at once. Loading stays proportional to the code's size
+(XLA links the executable's machine code): the band render's 13 MB takes ~3 s on a
+loaded 2-core host.
 
 What a file is keyed on (a SHA-256; any change gives a new name, so a stale program is
 never read): the program's name; the structure of its arguments (pytree definition,
@@ -13,31 +17,38 @@ every array's shape and dtype; array *values* are inputs, not part of the progra
 every non-array argument (equinox static fields such as grids, stamp sides, accuracy
 knobs; numpy arrays by their bytes) -- these are baked into the program; the source of
 every module of the clumpylen_jax package and its version; the jax and jaxlib
-versions, the backend and device kind, and the x64 switch. A program whose key cannot
+versions, the backend, device kind and platform version, the host CPU's features (an
+executable is machine code for them), and the x64 switch. A program whose key cannot
 be written down completely (an argument whose repr is an object address) is not
-cached: it is traced as usual. Files are written atomically and never removed by
-clumpylen (delete the folder to reclaim the space).
+cached: it is compiled as usual. Files are written atomically and never removed by
+clumpylen (delete the folder to reclaim the space); they are read with pickle, so the
+cache folder must be as trusted as the code itself (as for `modelcache`).
 
-The cached program and the freshly traced one are the same StableHLO, called the same
-way (`Exported.call`) whether the cache is on, off or cold: the images are bit for bit
-the same in each case.
+Every program is the same computation whether the cache is on, off or cold: the traced
+function is exported (`jax.export`) and `Exported.call` compiled, and that executable
+is called or, from the cache, the one stored after that compilation: the images are bit
+for bit the same in each case.
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
+import pickle
 import sys
+import time
 from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.monitoring as monitoring
 import numpy as np
+from jax.experimental import serialize_executable
 
 from . import __version__
 from .io import atomic_write
 
-_LAYOUT = "2"       # bump when the file layout or the key changes
+_LAYOUT = "3"       # bump when the file layout or the key changes
 
 
 @functools.lru_cache(maxsize=1)
@@ -56,6 +67,21 @@ def _environment() -> str:
     dev = jax.devices()[0]
     return (f"{__version__} jax {jax.__version__} jaxlib {jaxlib.__version__} "
             f"{jax.default_backend()} {dev.device_kind} x64={jax.config.read('jax_enable_x64')}")
+
+
+@functools.lru_cache(maxsize=1)
+def _machine() -> str:
+    """The backend's platform version and the host CPU's feature flags: a stored executable
+    is machine code, valid only where both are the same (a cache folder may be shared by
+    hosts of a cluster)."""
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            flags = next((line for line in fh if line.startswith(("flags", "Features"))), "")
+    except OSError:             # not Linux: the processor's name instead
+        import platform
+        flags = platform.processor()
+    return f"{jax.devices()[0].client.platform_version}\0{flags.strip()}"
 
 
 def _is_dynamic(x) -> bool:
@@ -86,7 +112,7 @@ def feed_pytree(h, obj) -> bool:
 def program_key(name: str, dyn_leaves, dyn_tree, static) -> str | None:
     """Hex SHA-256 naming a program (see the module docstring), or None when it cannot
     be keyed completely."""
-    h = hashlib.sha256(f"{_LAYOUT}\0{name}\0{_environment()}\0".encode())
+    h = hashlib.sha256(f"{_LAYOUT}\0{name}\0{_environment()}\0{_machine()}\0".encode())
     h.update(_package_digest())
     h.update(str(dyn_tree).encode())
     for leaf in dyn_leaves:
@@ -102,11 +128,11 @@ def _as_key_data(leaf):
 
 
 def call(name: str, fun, *args, folder=None):
-    """`fun(*args)` compiled as one program, its traced form read from / written to `folder`.
+    """`fun(*args)` compiled as one program, its executable read from / written to `folder`.
 
     name: identifies `fun` (part of the key: two functions must not share a name).
     args: pytrees (equinox Modules included); arrays are the program's inputs, every
-    other leaf is static (baked in). folder None: traced here, nothing read or written.
+    other leaf is static (baked in). folder None: compiled here, nothing read or written.
     """
     dyn, static = eqx.partition(args, _is_dynamic)
     leaves, tree = jax.tree_util.tree_flatten(dyn)
@@ -121,29 +147,38 @@ def call(name: str, fun, *args, folder=None):
 
     specs = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
     key = program_key(name, leaves, tree, (static, [str(i) for i in impls]))
-    path = None if folder is None or key is None else Path(folder) / f"{name}-{key[:40]}.jaxexport"
-    exp = _load(path)
-    if exp is None:
+    path = None if folder is None or key is None else Path(folder) / f"{name}-{key[:40]}.jaxexec"
+    compiled = _load(path)
+    if compiled is None:
         exp = jax.export.export(jax.jit(flat))(*specs)
+        compiled = jax.jit(exp.call).lower(*specs).compile()
         if path is not None:
-            _store(exp, path)
-    return exp.call(*leaves)
+            _store(compiled, path)
+    return compiled(*leaves)
 
 
-def _store(exp, path):
+def _store(compiled, path):
     try:
-        blob = exp.serialize()
-    except ImportError:     # flatbuffers missing: nothing kept, the run goes on
+        blob = pickle.dumps(serialize_executable.serialize(compiled),
+                            protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception:           # a backend or program that cannot be serialised: not kept
         return
     with atomic_write(path, "wb") as fh:
         fh.write(blob)
 
 
 def _load(path):
-    """The Exported stored at path, or None (absent or unreadable: traced again)."""
+    """The executable stored at path, or None (absent or unreadable: compiled again).
+
+    Its loading is reported to `jax.monitoring` as a compilation span (as JAX reports a
+    load from its own cache), so that stage timings count it as compile time."""
     if path is None or not path.is_file():
         return None
+    start = time.time()
     try:
-        return jax.export.deserialize(bytearray(path.read_bytes()))
-    except Exception:       # a truncated or foreign file: trace again and replace it
+        compiled = serialize_executable.deserialize_and_load(*pickle.loads(path.read_bytes()))
+    except Exception:       # a truncated or foreign file: compiled again and replaced
         return None
+    monitoring.record_event_time_span("/jax/core/compile/backend_compile_duration",
+                                      start, time.time())
+    return compiled

@@ -1,4 +1,4 @@
-"""Traced programs kept between runs (`programcache`): read back, keyed, invalidated."""
+"""Compiled programs kept between runs (`programcache`): read back, keyed, invalidated."""
 
 import equinox as eqx
 import jax
@@ -35,7 +35,7 @@ def _refuse_tracing(monkeypatch):
 def test_stored_program_is_read_back_and_gives_the_same_bits(monkeypatch, tmp_path):
     direct = np.asarray(jax.jit(_render)(*_args()))
     first = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
-    assert len(list(tmp_path.glob("tiny-*.jaxexport"))) == 1
+    assert len(list(tmp_path.glob("tiny-*.jaxexec"))) == 1
     uncached = np.asarray(programcache.call("tiny", _render, *_args(), folder=None))
     with monkeypatch.context() as m:
         _refuse_tracing(m)
@@ -54,16 +54,16 @@ def test_key_changes_with_static_fields_shapes_and_versions(monkeypatch, tmp_pat
     assert np.allclose(cubed[1:], (1.5 * np.linspace(0, 1, 7)[1:]) ** 3, rtol=1e-3, atol=1e-2)
     m, _, key = _args()
     programcache.call("tiny", _render, m, jnp.ones(5), key, folder=tmp_path)   # other shape
-    assert len(list(tmp_path.glob("tiny-*.jaxexport"))) == 3
+    assert len(list(tmp_path.glob("tiny-*.jaxexec"))) == 3
     # another package version (or jax version, in the same string): a new key, old file unread
     monkeypatch.setattr(programcache, "__version__", "0.0.0-other")
     programcache.call("tiny", _render, *_args(), folder=tmp_path)
-    assert len(list(tmp_path.glob("tiny-*.jaxexport"))) == 4
+    assert len(list(tmp_path.glob("tiny-*.jaxexec"))) == 4
 
 
 def test_unreadable_file_is_traced_again_and_replaced(tmp_path):
     want = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
-    (path,) = tmp_path.glob("tiny-*.jaxexport")
+    (path,) = tmp_path.glob("tiny-*.jaxexec")
     path.write_bytes(b"not a program")
     got = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
     assert got.tobytes() == want.tobytes()

@@ -122,3 +122,24 @@ def test_paper_figure_from_a_run_with_hr_images(tmp_path):
     path = paperfig.plot_paper_rgb(run, tmp_path / "paper.png", summary=summary, bands=bands, catalog=catalog)
     h, w = mpimg.imread(path).shape[:2]
     assert w >= 1200 and h >= 600  # two panels side by side, each over 600 px
+
+
+def test_lupton_stretch_is_astropys_bit_for_bit():
+    """`_lupton_rgb` (a few in-place passes) gives astropy's make_lupton_rgb array exactly:
+    NaN, zero and negative pixels, intensities ≤ 0, saturated pixels and tiny Q included."""
+    from astropy.visualization import make_lupton_rgb
+
+    rng = np.random.default_rng(5)
+    chans = [rng.normal(0.2, 1.0, (64, 48)) ** 3 for _ in range(3)]
+    chans[0][0, 0] = np.nan
+    chans[1][3, 4] = -0.0
+    for c in chans:
+        c[10:12] = 0.0
+    for stretch, Q in [(0.3, 7.0), (1e-3, 2.5), (5.0, 1e-9), (2.0, 8.0)]:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            want = make_lupton_rgb(*chans, minimum=[0.0, 0.0, 0.0], stretch=stretch, Q=Q,
+                                   output_dtype=np.float64)
+        got = ri._lupton_rgb(chans, stretch, Q)
+        assert got.shape == want.shape
+        assert np.array_equal(got, want, equal_nan=True)
+        assert np.array_equal(np.signbit(got), np.signbit(want))
