@@ -613,3 +613,14 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
 def lensed_fit_accuracy(accuracy):
     """The accuracy a lensed `make_model` needs here: clumps evaluated at every ray."""
     return dataclasses.replace(accuracy, source_mode="analytic")
+
+
+def fit_clump_pixels(clump_n: float, round_clumps: bool, lensed: bool) -> str:
+    """`Accuracy.clump_pixels` for a fit's model: "round_gaussian" when its clumps are round
+    (q = 1, no shape fitted) Gaussians (Sérsic n = 0.5) in an unlensed scene, else "sersic".
+
+    The separable renderer is exact for those clumps and needs no stamps, which makes a
+    Levenberg–Marquardt step of the counting fit several times cheaper and its compilation
+    shorter (benchmarks/results/bench_fit_auto.md), and no clump is cut by a stamp however
+    its R_e grows. Any other clump keeps the general Sérsic renderer."""
+    return "round_gaussian" if (not lensed and round_clumps and clump_n == 0.5) else "sersic"
