@@ -342,7 +342,7 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives):
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(actives[pad]), TOL, int(ctx.opts.max_steps))
+        jnp.asarray(actives[pad]), TOL, int(ctx.opts.max_steps), int(ctx.host_index.size))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
