@@ -188,3 +188,17 @@ def test_blockwise_jacobian_is_the_jacobian():
     assert np.abs(np.asarray(r) - np.asarray(resid(u))).max() <= 1e-12 * np.abs(np.asarray(r)).max()
     assert np.abs(np.asarray(J) - np.asarray(J0)).max() <= 1e-12 * np.abs(np.asarray(J0)).max()
     assert np.abs(np.asarray(J0)[:, clumps]).max() > 0 and np.abs(np.asarray(J0)[:, host]).max() > 0
+
+
+def test_lm_with_a_traced_zero_step_limit_takes_no_step():
+    """A start that only pads the compiled batch (auto._step_limits gives it 0 steps) costs no
+    step: u0 back, χ² = inf (ln L = −inf, never the best), not converged; a traced limit of 50
+    in the same program solves the problem."""
+    from clumpylen_jax.inference.lm import levenberg_marquardt
+    a = jnp.array([[2.0, 1.0], [1.0, 3.0], [0.5, -1.0]])
+    b = jnp.array([1.0, -2.0, 0.5])
+    solve = jax.jit(lambda n: levenberg_marquardt(lambda u: a @ u - b, jnp.ones(2), n, 1e-10))
+    pad, real = solve(jnp.asarray(0)), solve(jnp.asarray(50))
+    assert int(pad.n_steps) == 0 and not bool(pad.success) and np.isinf(float(pad.chi2))
+    assert np.all(np.asarray(pad.u) == 1.0)
+    assert bool(real.success) and int(real.n_steps) > 0

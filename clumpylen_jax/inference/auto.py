@@ -315,8 +315,16 @@ def _probe_grids(make_model, probe_src, data):
 # ---------------------------------------------------------------------------- steps
 
 
+def _step_limits(ctx: _Ctx, m: int):
+    """LM steps of each start of the compiled batch: max_steps for the m real starts, 0 for
+    the padding (a counting step with fewer candidates than n_starts solves only those)."""
+    return jnp.asarray(np.where(np.arange(ctx.opts.n_starts) < m, int(ctx.opts.max_steps), 0),
+                       jnp.int32)
+
+
 def _fit(ctx: _Ctx, u0s, actives):
-    """Solve from each start (padded to the compiled batch n_starts by repeating the first)."""
+    """Solve from each start (padded to the compiled batch n_starts: the padding takes no
+    step, `_step_limits`)."""
     s = ctx.opts.n_starts
     u0s, actives = np.asarray(u0s), np.asarray(actives, float)
     m = u0s.shape[0]
@@ -324,7 +332,7 @@ def _fit(ctx: _Ctx, u0s, actives):
     t0 = time.perf_counter()
     us, lnl, ok, steps = capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0s[pad]),
                                               jnp.asarray(actives[pad]), TOL,
-                                              int(ctx.opts.max_steps))
+                                              _step_limits(ctx, m))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m, int(actives[0].sum()),
              time.perf_counter() - t0, np.round(lnl[:m], 1), np.asarray(steps)[:m])
@@ -342,7 +350,7 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives):
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(actives[pad]), TOL, int(ctx.opts.max_steps), int(ctx.host_index.size))
+        jnp.asarray(actives[pad]), TOL, _step_limits(ctx, m), int(ctx.host_index.size))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),

@@ -43,9 +43,16 @@ def solve_batch(model, data, param, u0s, actives, rtol, max_steps):
 
     Not vmapped: a vmapped solve holds every start's Jacobian intermediates at once (a
     3-band 120² fit with 20 slots and 4 starts reached 10.8 GB and was killed) and runs
-    every start for as many steps as the slowest; on a CPU the batch bought no speed."""
-    return jax.lax.map(lambda ua: _solve(model, data, param, ua[0], ua[1], rtol, max_steps),
-                       (u0s, actives))
+    every start for as many steps as the slowest; on a CPU the batch bought no speed.
+
+    max_steps: LM steps per start, an int or ints [S] (0 for a start that only pads the
+    batch to its compiled size: it costs no step and returns ln L = −inf)."""
+    return jax.lax.map(lambda uas: _solve(model, data, param, *uas[:2], rtol, uas[2]),
+                       (u0s, actives, _per_start(max_steps, u0s.shape[0])))
+
+
+def _per_start(max_steps, n):
+    return jnp.broadcast_to(jnp.asarray(max_steps, jnp.int32), (n,))
 
 
 def _solve_local(model, data, param, u, idx, active, rtol, max_steps, n_host):
@@ -63,9 +70,10 @@ def solve_local_batch(model, data, param, us, idxs, actives, rtol, max_steps, n_
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
     step is K Jacobian columns (host, background and a few clumps), not the capacity's.
     Each idxs[s] lists every host and background entry first (n_host of them, static), then
-    clump entries: the Jacobian's two blocks (`lm.blockwise`)."""
-    return jax.lax.map(lambda uia: _solve_local(model, data, param, *uia, rtol, max_steps, n_host),
-                       (us, idxs, actives))     # one start at a time: see solve_batch
+    clump entries: the Jacobian's two blocks (`lm.blockwise`). max_steps as in solve_batch."""
+    return jax.lax.map(lambda uias: _solve_local(model, data, param, *uias[:3], rtol, uias[3],
+                                                 n_host),
+                       (us, idxs, actives, _per_start(max_steps, us.shape[0])))  # see solve_batch
 
 
 @eqx.filter_jit

@@ -105,6 +105,7 @@ def held_residuals(scene_model, data, param, to_u=None, active=None):
 def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
                         r_and_j=None) -> LMResult:
     """Minimise |resid(u)|² over u from u0 (module doc). Traceable: vmap it for many starts.
+    max_steps: an int or a traced integer (0: no step, u0 returned with χ² = inf).
     r_and_j: u ↦ (resid(u), Jacobian) when given (`blockwise`), else one jacfwd of resid."""
     r_and_j = r_and_j or _jacfwd(resid)
 
