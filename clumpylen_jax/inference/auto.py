@@ -485,12 +485,18 @@ def _prune(ctx: _Ctx, u, lnl, active, steps):
 
 
 def _final(ctx: _Ctx, u, active, steps):
-    """Refit from n_starts perturbed starts (the first unperturbed); best kept, spread kept."""
+    """Refit from n_starts perturbed starts (the first unperturbed); best kept, spread kept.
+
+    Over the host, background and the kept clumps' entries only (`_fit_local`): an inactive
+    slot's Jacobian columns are zero and its step is zero, so leaving them out gives the
+    same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
+    One compile for the final's number of kept clumps."""
     rng = np.random.default_rng(ctx.opts.seed)
     s = ctx.opts.n_starts
     eps = rng.normal(0.0, 0.1, (s, u.size))
     eps[0] = 0.0
-    us, lnls, oks, n = _fit(ctx, u[None] + eps, np.tile(active, (s, 1)))
+    kept = [int(i) for i in np.nonzero(active > 0)[0]]
+    us, lnls, oks, n = _fit_local(ctx, u[None] + eps, [kept] * s, np.tile(active, (s, 1)))
     b = int(np.argmax(lnls))
     steps.append(dict(step=len(steps), action="final", slot=-1, n_clumps=int(active.sum()),
                       delta_lnL=np.nan, criterion=np.nan, accepted=True, lnL=float(lnls[b]),
