@@ -5,12 +5,14 @@ PSF): the compile time and the warm time per Levenberg–Marquardt step of
 
 - the local fit of a counting step (host, background and LOCAL_SLOTS clumps free, the
   rest held: a fixed number of Jacobian columns whatever the capacity), and
-- the joint fit of every slot (the final refit; measured at 10 and 40, and at 200
-  unless --quick),
+- the joint fit of every slot (`capacity.solve_batch`; measured at 10 and 40, and at 200
+  unless --quick; the final refit of `fit_without_truth` solves only the kept clumps'
+  entries, as a local fit),
 
 then a whole `fit_without_truth` run on a mock with 6 clumps, recording the XLA compiles
-(jax.monitoring) of each counting step: every adding step after the first reuses the
-compiled code (0 compiles), so compile time does not grow with the number of steps.
+(jax.monitoring) of each counting step and of the final refit: every adding step after the
+first reuses the compiled code (0 compiles), so compile time does not grow with the number
+of steps; the final refit compiles once for its number of kept clumps.
 
 The fit's model draws its round n = 0.5 clumps as `fit_without_truth`'s callers build it
 (`auto.fit_clump_pixels`: the exact separable renderer, "round_gaussian"); --clump-pixels
@@ -134,7 +136,7 @@ def counting_compiles(n_clumps=6, cap=10):
         fit = fit_without_truth(make_model, data, var, options=AutoOptions(max_clumps=cap, n_starts=4))
     finally:
         auto._fit_local = orig
-    for m, s in zip(marks, [s for s in fit.steps if s["action"] in ("host", "add", "reject")]):
+    for m, s in zip(marks, [s for s in fit.steps if s["action"] in ("host", "add", "reject", "final")]):
         m["action"] = s["action"]
         m["n_clumps"] = s["n_clumps"]
     return {"true_clumps": n_clumps, "found": len(fit.table), "steps": marks}
