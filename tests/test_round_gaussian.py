@@ -80,6 +80,16 @@ def test_separable_is_exact_where_the_fan_integral_is_least():
     grid = Grid(0.0, 0.0, PIX, 31, 27)
     re, c = 0.3 * PIX, (0.3111, 0.4102)
     sep, fan = separable_image(grid, c, re), fan_images(grid, [c], [re])[0]
+    j, i = np.unravel_index(np.argmax(np.abs(sep - fan)), sep.shape)
+    s = re / np.sqrt(2 * np.log(2))
+    x, y = grid.x_edges(), grid.y_edges()
+    ref, _ = integrate.dblquad(
+        lambda yy, xx: np.exp(-((xx - c[0])**2 + (yy - c[1])**2) / (2 * s * s)) / (2 * np.pi * s * s),
+        x[i], x[i + 1], y[j], y[j + 1], epsabs=1e-15, epsrel=1e-13)
+    assert abs(sep[j, i] - ref) < 1e-12
+    assert abs(fan[j, i] - ref) > 1e-9        # the point of the check: the fan is the looser one
+
+
 def test_far_tail_keeps_relative_precision():
     """A pixel 30 σ from the centre: erfc of both edges, not 1 − 1 (which gives 0)."""
     edges = np.array([30.0, 31.0])
