@@ -203,3 +203,25 @@ def test_default_is_the_sersic_renderer():
                  clumps=clumps([[0, 0]], PIX))
     m = build_model(src, [Band("X", PIX, 1.0)], field_arcsec=((-0.3, 0.3), (-0.3, 0.3)))
     assert Accuracy().clump_pixels == "sersic" and isinstance(m.clumps, UnlensedClumps)
+
+
+def test_fit_factories_choose_the_renderer_from_the_clump_options():
+    """Round n = 0.5 clumps of an unlensed fit: the separable renderer; an elliptical shape,
+    another n or a lens: the Sérsic stamps (observations.fit.make_model_factory end to end)."""
+    from clumpylen_jax.inference.auto import fit_clump_pixels
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.fit import make_model_factory
+    from clumpylen_jax.observations.frame import BandFrame, fit_frame
+    assert fit_clump_pixels(0.5, True, lensed=False) == "round_gaussian"
+    assert {fit_clump_pixels(0.5, False, lensed=False), fit_clump_pixels(1.0, True, lensed=False),
+            fit_clump_pixels(0.5, True, lensed=True)} == {"sersic"}
+
+    class _Ob:   # what make_model_factory reads of an observation
+        name, psf = "F150W", None
+
+    frame = fit_frame([BandFrame((20, 20), PIX)], ["F150W"])
+    src = Source(bulge=Sersic(jnp.ones(1), jnp.asarray(0.1), jnp.asarray(1.0), jnp.asarray(1.0),
+                              jnp.asarray(0.0), jnp.zeros(2)), clumps=clumps([[0, 0]], PIX))
+    for opts, kind in ((FitOptions(clump_n=0.5), RoundGaussianClumps),
+                       (FitOptions(clump_n=0.5, clump_shape="elliptical"), UnlensedClumps)):
+        assert isinstance(make_model_factory([_Ob()], frame, opts)(src).clumps, kind)
