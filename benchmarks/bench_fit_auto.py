@@ -5,15 +5,23 @@ PSF): the compile time and the warm time per Levenberg–Marquardt step of
 
 - the local fit of a counting step (host, background and LOCAL_SLOTS clumps free, the
   rest held: a fixed number of Jacobian columns whatever the capacity), and
-- the joint fit of every slot (the final refit; measured at 10 and 40, and at 200
-  unless --quick),
+- the joint fit of every slot (`capacity.solve_batch`; measured at 10 and 40, and at 200
+  unless --quick; the final refit of `fit_without_truth` solves only the kept clumps'
+  entries, as a local fit),
 
 then a whole `fit_without_truth` run on a mock with 6 clumps, recording the XLA compiles
-(jax.monitoring) of each counting step: every adding step after the first reuses the
-compiled code (0 compiles), so compile time does not grow with the number of steps.
+(jax.monitoring) of each counting step and of the final refit: every adding step after the
+first reuses the compiled code (0 compiles), so compile time does not grow with the number
+of steps; the final refit compiles once for its number of kept clumps.
 
-Run: .venv/bin/python benchmarks/bench_fit_auto.py [--quick]
-Writes benchmarks/results/bench_fit_auto.{json,md}.
+The fit's model draws its round n = 0.5 clumps as `fit_without_truth`'s callers build it
+(`auto.fit_clump_pixels`: the exact separable renderer, "round_gaussian"); --clump-pixels
+sersic measures the general Sérsic stamps instead. The mock images are always rendered with
+the Sérsic stamps (their clumps are elliptical).
+
+Run: .venv/bin/python benchmarks/bench_fit_auto.py [--quick] [--clump-pixels sersic]
+Writes benchmarks/results/bench_fit_auto.{json,md} (with --clump-pixels sersic:
+bench_fit_auto_sersic.{json,md}).
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import time
 
 import jax
@@ -52,15 +61,21 @@ jax.monitoring.register_event_duration_secs_listener(
     else None)
 
 
+CLUMP_PIXELS = [auto.fit_clump_pixels(AutoOptions.clump_n, True, lensed=False)]  # --clump-pixels
+
+
 def make_model(src):
-    return build_model(src, BANDS, field_arcsec=FIELD, accuracy=ACC)
+    """The fit's model."""
+    return build_model(src, BANDS, field_arcsec=FIELD,
+                       accuracy=dataclasses.replace(ACC, clump_pixels=CLUMP_PIXELS[0]))
 
 
 def mock(n_clumps, seed=0):
     cl = toy_clumps(n_clumps, seed=seed, half_width_arcsec=0.6, flux=(2.0, 6.0),
                     re_arcsec=(0.005, 0.03), min_separation_arcsec=0.15).clumps
     truth = Source(bulge=HOST, clumps=cl)
-    noisy, _, var = make_model(truth).observe(truth, jax.random.key(seed))
+    model = build_model(truth, BANDS, field_arcsec=FIELD, accuracy=ACC)
+    noisy, _, var = model.observe(truth, jax.random.key(seed))
     return [np.asarray(noisy[0])], [np.asarray(var[0])]
 
 
@@ -81,7 +96,8 @@ def capacity_costs(cap, data, var, steps, joint=True):
 
     def local(max_steps):
         return capacity.solve_local_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),
-                                          jnp.asarray(idx), jnp.asarray(active), 0.0, max_steps)
+                                          jnp.asarray(idx), jnp.asarray(active), 0.0, max_steps,
+                                          int(ctx.host_index.size))
 
     def joint_fit(max_steps):
         return capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),
@@ -120,7 +136,7 @@ def counting_compiles(n_clumps=6, cap=10):
         fit = fit_without_truth(make_model, data, var, options=AutoOptions(max_clumps=cap, n_starts=4))
     finally:
         auto._fit_local = orig
-    for m, s in zip(marks, [s for s in fit.steps if s["action"] in ("host", "add", "reject")]):
+    for m, s in zip(marks, [s for s in fit.steps if s["action"] in ("host", "add", "reject", "final")]):
         m["action"] = s["action"]
         m["n_clumps"] = s["n_clumps"]
     return {"true_clumps": n_clumps, "found": len(fit.table), "steps": marks}
@@ -129,19 +145,24 @@ def counting_compiles(n_clumps=6, cap=10):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="no joint fit at capacity 200")
+    ap.add_argument("--clump-pixels", choices=["sersic", "round_gaussian"], default=CLUMP_PIXELS[0])
     args = ap.parse_args()
+    CLUMP_PIXELS[0] = args.clump_pixels
+    stem = "bench_fit_auto" + ("" if args.clump_pixels == "round_gaussian" else "_" + args.clump_pixels)
     data, var = mock(8)
     rows = []
     for cap in (10, 40, 200):
         rows.append(capacity_costs(cap, data, var, steps=5, joint=cap <= 40 or not args.quick))
     count = counting_compiles()
     res = {"machine": machine(), "capacities": rows, "counting": count,
+           "clump_pixels": args.clump_pixels, "load_average": list(os.getloadavg()),
            "scene": f"unlensed, {NPIX}x{NPIX} px of 0.03\", Gaussian PSF sigma 1 px, "
-                    f"psf_oversampling 3, host + clumps"}
+                    f"psf_oversampling 3, host + clumps (clump_pixels {args.clump_pixels})"}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "bench_fit_auto.json").write_text(json.dumps(res, indent=2))
+    (RESULTS / f"{stem}.json").write_text(json.dumps(res, indent=2))
     lines = ["# bench_fit_auto: counting clumps without recompiling", "",
-             f"{res['scene']}; {res['machine']['date']}, {res['machine']['cpu_count']} CPUs", "",
+             f"{res['scene']}; {res['machine']['date']}, {res['machine']['cpu_count']} CPUs, "
+             f"load average {' / '.join(f'{v:.1f}' for v in res['load_average'])}", "",
              "| capacity | free (local) | free (joint) | local compile s | local s/step | "
              "joint compile s | joint s/step |", "|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -155,7 +176,7 @@ def main():
     for i, m in enumerate(count["steps"]):
         lines.append(f"| {i} | {m.get('action', '')} | {m.get('n_clumps', '')} | {m['compiles']} | "
                      f"{m['compile_s']:.1f} | {m['wall_s']:.1f} |")
-    (RESULTS / "bench_fit_auto.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -10,6 +10,7 @@ import numpy as np
 from .errors import require
 
 SOURCE_MODES = ("hybrid", "grid", "analytic")
+CLUMP_PIXELS = ("sersic", "round_gaussian")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,6 +41,12 @@ class Accuracy:
     gaussian_noise_above: expected counts above which noise is drawn as a Gaussian (None: never).
     host_subsampling: evaluate host components at every ray (True) or at each lens-plane
         pixel's centre only (False: they vary little across a pixel's source-plane footprint).
+    clump_pixels: how unlensed clumps are integrated over pixels. "sersic": any Sérsic
+        index and shape, on stamps (Gauss–Legendre sampled, exact core or strip);
+        "round_gaussian": only clumps with n = 0.5 and q = 1 (round Gaussians, the paper's
+        clumps), exactly and with no stamps, as separable Φ differences
+        (`model.clumps.RoundGaussianClumps`; `build_model` refuses other clumps and lensed
+        scenes). The clump fits choose it for their round n = 0.5 clumps.
     """
 
     lens_subsampling: int = 4
@@ -53,6 +60,7 @@ class Accuracy:
     source_flux_fraction: float = 0.99
     gaussian_noise_above: Optional[float] = 1.0e4
     host_subsampling: bool = False
+    clump_pixels: str = "sersic"
 
     def validate(self, name="render.accuracy"):
         for key in ("lens_subsampling", "source_order", "psf_oversampling"):
@@ -65,6 +73,8 @@ class Accuracy:
                 f"{name}.exact_core", self.exact_core, "an integer in [0, 31]")
         require(self.source_mode in SOURCE_MODES, f"{name}.source_mode",
                 self.source_mode, " or ".join(f'"{m}"' for m in SOURCE_MODES))
+        require(self.clump_pixels in CLUMP_PIXELS, f"{name}.clump_pixels", self.clump_pixels,
+                " or ".join(f'"{m}"' for m in CLUMP_PIXELS))
         require(np.isfinite(self.linearise_tolerance) and self.linearise_tolerance >= 0,
                 f"{name}.linearise_tolerance", self.linearise_tolerance, "a fraction ≥ 0")
         for key in ("stamp_flux_fraction", "source_flux_fraction"):

@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -157,3 +158,47 @@ def test_fisher_with_an_active_mask_is_the_fisher_of_the_active_clumps():
     dead = [i for i in range(len(lab)) if i not in rows]
     assert len(dead) == 2 and np.all(f_masked[dead] == 0)
     assert np.allclose(f_masked[np.ix_(rows, rows)], f2, rtol=1e-8, atol=0)
+
+
+def test_blockwise_jacobian_is_the_jacobian():
+    """lm.blockwise (host and background columns with the clumps held, clump columns with the
+    host held) gives the Jacobian of one jacfwd over every entry, for a bulge, a disk and
+    round-Gaussian clumps."""
+    from clumpylen_jax.inference.likelihood import make_data, make_residuals
+    from clumpylen_jax.inference.lm import blockwise, held_residuals
+    from clumpylen_jax.inference.params import make_state, parametrize, part_blocks
+    from clumpylen_jax.source import Disk
+    src = Source(bulge=HOST, disk=Disk(dataclasses.replace(HOST, re_arcsec=jnp.asarray(0.4)),
+                                       jnp.asarray(0.5)),
+                 clumps=dataclasses.replace(CLUMPS, q=jnp.ones(3)))
+    model = build_model(src, BANDS, field_arcsec=FIELD,
+                        accuracy=dataclasses.replace(ACC, clump_pixels="round_gaussian"))
+    img = np.asarray(eqx.filter_jit(lambda m, s: m.noiseless(s))(model, src)[0])
+    data = make_data(model, [img * 1.1], [np.ones_like(img)], kind="gaussian")
+    param = parametrize(make_state(src, 1), {
+        "bulge.flux": True, "bulge.re_arcsec": True, "disk.sersic.flux": True,
+        "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
+        "background": True})
+    u = param.initial() + 0.01
+    host, clumps = part_blocks(param)
+    assert host.size == 4 and clumps.size == 12
+    r, J = jax.jit(blockwise(held_residuals(model, data, param), (host, clumps)))(u)
+    resid = jax.jit(make_residuals(model, data, param))
+    J0 = jax.jit(jax.jacfwd(resid))(u)
+    assert np.abs(np.asarray(r) - np.asarray(resid(u))).max() <= 1e-12 * np.abs(np.asarray(r)).max()
+    assert np.abs(np.asarray(J) - np.asarray(J0)).max() <= 1e-12 * np.abs(np.asarray(J0)).max()
+    assert np.abs(np.asarray(J0)[:, clumps]).max() > 0 and np.abs(np.asarray(J0)[:, host]).max() > 0
+
+
+def test_lm_with_a_traced_zero_step_limit_takes_no_step():
+    """A start that only pads the compiled batch (auto._step_limits gives it 0 steps) costs no
+    step: u0 back, χ² = inf (ln L = −inf, never the best), not converged; a traced limit of 50
+    in the same program solves the problem."""
+    from clumpylen_jax.inference.lm import levenberg_marquardt
+    a = jnp.array([[2.0, 1.0], [1.0, 3.0], [0.5, -1.0]])
+    b = jnp.array([1.0, -2.0, 0.5])
+    solve = jax.jit(lambda n: levenberg_marquardt(lambda u: a @ u - b, jnp.ones(2), n, 1e-10))
+    pad, real = solve(jnp.asarray(0)), solve(jnp.asarray(50))
+    assert int(pad.n_steps) == 0 and not bool(pad.success) and np.isinf(float(pad.chi2))
+    assert np.all(np.asarray(pad.u) == 1.0)
+    assert bool(real.success) and int(real.n_steps) > 0

@@ -301,7 +301,7 @@ def _mock_scene(tmp_path, seed=0):
     from clumpylen_jax.psf import load_psf_fits
     psfs = [load_psf_fits(gaussian_psf_file(tmp_path / f"psf_{n}.fits", 1.3, 15, pix))
             for n, pix, _, _ in bands]
-    opts = FitOptions(clumps="starts.ecsv")
+    opts = FitOptions(clumps="starts.ecsv", clump_n=1.0)   # the truth's clumps: n = 1
     model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
     images = [np.asarray(i) for i in model.band_images(truth)]
     tables = []
@@ -315,7 +315,7 @@ def _mock_scene(tmp_path, seed=0):
     ra, dec = frame.radec(start)
     from astropy.table import Table
     Table({"ra_deg": ra, "dec_deg": dec}).write(tmp_path / "starts.ecsv", overwrite=True)
-    scene = _scene(tmp_path, tables, fit='clumps = "starts.ecsv"\n')
+    scene = _scene(tmp_path, tables, fit='clumps = "starts.ecsv"\nclump_n = 1.0\n')
     zps = [zeropoint_mjy_sr(pixar[b[1]]) for b in bands]
     return scene, truth, frame, zps
 
@@ -464,7 +464,8 @@ def test_clump_that_grows_from_1_to_5_pixels_matches_a_start_at_5(tmp_path):
     scene = load_observation_scene(_scene(tmp_path, [{"filter": "F150W", "image": path}],
                                           fit='host = "none"\nclumps = "none"\n'))
     obs, frame = read_scene_data(scene)
-    opts = FitOptions(host="none", clumps="none", clump_re_max_arcsec=0.3)
+    # n = 1: the Sérsic stamps, whose size is what this checks (round n = 0.5 clumps have none)
+    opts = FitOptions(host="none", clumps="none", clump_re_max_arcsec=0.3, clump_n=1.0)
     img = np.asarray(make_model_factory(obs, frame, opts)(truth).band_images(truth)[0])
     rng = np.random.default_rng(5)
     obs = [__import__("dataclasses").replace(obs[0], data=img + rng.normal(0, 0.01, shape))]

@@ -315,8 +315,16 @@ def _probe_grids(make_model, probe_src, data):
 # ---------------------------------------------------------------------------- steps
 
 
+def _step_limits(ctx: _Ctx, m: int):
+    """LM steps of each start of the compiled batch: max_steps for the m real starts, 0 for
+    the padding (a counting step with fewer candidates than n_starts solves only those)."""
+    return jnp.asarray(np.where(np.arange(ctx.opts.n_starts) < m, int(ctx.opts.max_steps), 0),
+                       jnp.int32)
+
+
 def _fit(ctx: _Ctx, u0s, actives):
-    """Solve from each start (padded to the compiled batch n_starts by repeating the first)."""
+    """Solve from each start (padded to the compiled batch n_starts: the padding takes no
+    step, `_step_limits`)."""
     s = ctx.opts.n_starts
     u0s, actives = np.asarray(u0s), np.asarray(actives, float)
     m = u0s.shape[0]
@@ -324,7 +332,7 @@ def _fit(ctx: _Ctx, u0s, actives):
     t0 = time.perf_counter()
     us, lnl, ok, steps = capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0s[pad]),
                                               jnp.asarray(actives[pad]), TOL,
-                                              int(ctx.opts.max_steps))
+                                              _step_limits(ctx, m))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m, int(actives[0].sum()),
              time.perf_counter() - t0, np.round(lnl[:m], 1), np.asarray(steps)[:m])
@@ -342,7 +350,7 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives):
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(actives[pad]), TOL, int(ctx.opts.max_steps))
+        jnp.asarray(actives[pad]), TOL, _step_limits(ctx, m), int(ctx.host_index.size))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
@@ -477,12 +485,18 @@ def _prune(ctx: _Ctx, u, lnl, active, steps):
 
 
 def _final(ctx: _Ctx, u, active, steps):
-    """Refit from n_starts perturbed starts (the first unperturbed); best kept, spread kept."""
+    """Refit from n_starts perturbed starts (the first unperturbed); best kept, spread kept.
+
+    Over the host, background and the kept clumps' entries only (`_fit_local`): an inactive
+    slot's Jacobian columns are zero and its step is zero, so leaving them out gives the
+    same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
+    One compile for the final's number of kept clumps."""
     rng = np.random.default_rng(ctx.opts.seed)
     s = ctx.opts.n_starts
     eps = rng.normal(0.0, 0.1, (s, u.size))
     eps[0] = 0.0
-    us, lnls, oks, n = _fit(ctx, u[None] + eps, np.tile(active, (s, 1)))
+    kept = [int(i) for i in np.nonzero(active > 0)[0]]
+    us, lnls, oks, n = _fit_local(ctx, u[None] + eps, [kept] * s, np.tile(active, (s, 1)))
     b = int(np.argmax(lnls))
     steps.append(dict(step=len(steps), action="final", slot=-1, n_clumps=int(active.sum()),
                       delta_lnL=np.nan, criterion=np.nan, accepted=True, lnL=float(lnls[b]),
@@ -613,3 +627,14 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
 def lensed_fit_accuracy(accuracy):
     """The accuracy a lensed `make_model` needs here: clumps evaluated at every ray."""
     return dataclasses.replace(accuracy, source_mode="analytic")
+
+
+def fit_clump_pixels(clump_n: float, round_clumps: bool, lensed: bool) -> str:
+    """`Accuracy.clump_pixels` for a fit's model: "round_gaussian" when its clumps are round
+    (q = 1, no shape fitted) Gaussians (Sérsic n = 0.5) in an unlensed scene, else "sersic".
+
+    The separable renderer is exact for those clumps and needs no stamps, which makes a
+    Levenberg–Marquardt step of the counting fit several times cheaper and its compilation
+    shorter (benchmarks/results/bench_fit_auto.md), and no clump is cut by a stamp however
+    its R_e grows. Any other clump keeps the general Sérsic renderer."""
+    return "round_gaussian" if (not lensed and round_clumps and clump_n == 0.5) else "sersic"

@@ -21,11 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import require
-from .auto import AutoOptions, fit_without_truth, lensed_fit_accuracy
+from .auto import AutoOptions, fit_clump_pixels, fit_without_truth, lensed_fit_accuracy
 
 
-def make_model_factory(prep):
-    """make_model(source) for `fit_without_truth` on the scene's bands, lens and detector grids."""
+def make_model_factory(prep, options: AutoOptions):
+    """make_model(source) for `fit_without_truth` with `options` on the scene's bands, lens
+    and detector grids (round n = 0.5 clumps of an unlensed scene: the exact separable
+    renderer, `fit_clump_pixels`)."""
     from ..model import build_model
 
     grids = [lay.grid for lay in prep.model.layouts]
@@ -33,6 +35,8 @@ def make_model_factory(prep):
     if field is None:   # unlensed: the images' own area (all bands share it)
         field = (grids[0].x_range, grids[0].y_range)
     acc = lensed_fit_accuracy(prep.accuracy) if prep.lens is not None else prep.accuracy
+    acc = dataclasses.replace(acc, clump_pixels=fit_clump_pixels(
+        options.clump_n, not options.fit_shape, prep.lens is not None))
 
     def make_model(source):
         return build_model(source, prep.bands, lens=prep.lens, field_arcsec=field, accuracy=acc,
@@ -48,17 +52,19 @@ def run_auto_fit(prep, images, variances=None, *, out_dir=None, options=None):
     if variances is None:
         variances = [np.maximum(np.asarray(d, float), max(lay.sky_counts_per_s, 1e-12)) / lay.exptime_s
                      for d, lay in zip(images, prep.model.layouts)]
-    opts = options or AutoOptions(clump_n=float(_clump_n(prep.scene)), seed=int(prep.scene.seed))
-    fit = fit_without_truth(make_model_factory(prep), images, variances, lens=prep.lens,
+    opts = options or scene_options(prep.scene)
+    fit = fit_without_truth(make_model_factory(prep, opts), images, variances, lens=prep.lens,
                             zeropoints_ab=prep.zeropoints, options=opts)
     if out_dir is not None:
         write_auto_fit(fit, images, variances, out_dir)
     return fit
 
 
-def _clump_n(scene):
+def scene_options(scene) -> AutoOptions:
+    """The fit's options from the scene: its clumps' Sérsic index and its seed."""
     cl = getattr(scene.source, "clumps", None)
-    return getattr(cl, "sersic_n", AutoOptions.clump_n) if cl is not None else AutoOptions.clump_n
+    n = getattr(cl, "sersic_n", AutoOptions.clump_n) if cl is not None else AutoOptions.clump_n
+    return AutoOptions(clump_n=float(n), seed=int(scene.seed))
 
 
 def write_auto_fit(fit, images, variances, out_dir) -> list:
@@ -90,14 +96,15 @@ def run_sampled_fit(prep, images, variances=None, *, method="emcee", out_dir=Non
     from .run import run_fit
     from .params import default_free
 
-    auto_fit = run_auto_fit(prep, images, variances)
+    opts = scene_options(prep.scene)
+    auto_fit = run_auto_fit(prep, images, variances, options=opts)
     src = auto_fit.state.source
     build = src
     if src.clumps is not None and src.clumps.count > 0:
         re_hi = float(auto_fit.table.meta["re_bounds_arcsec"][1])
         build = dataclasses.replace(src, clumps=dataclasses.replace(
             src.clumps, re_arcsec=jnp.full_like(src.clumps.re_arcsec, re_hi)))
-    model = make_model_factory(prep)(build)
+    model = make_model_factory(prep, opts)(build)
     free = default_free(src, host_fields=("flux", "re_arcsec", "center_arcsec"), background=True)
     run = run_fit(model, src, list(images), None if variances is None else list(variances),
                   free=free, method=method,

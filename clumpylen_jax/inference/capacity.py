@@ -20,8 +20,8 @@ import numpy as np
 
 from ..convolve import fft_shape
 from .likelihood import predicted_images, whitened_residuals
-from .lm import levenberg_marquardt
-from .params import Parametrization, masked_clumps
+from .lm import blockwise, held_residuals, levenberg_marquardt
+from .params import Parametrization, masked_clumps, part_blocks
 
 
 def _residuals(model, data, param: Parametrization, u, active):
@@ -29,35 +29,51 @@ def _residuals(model, data, param: Parametrization, u, active):
 
 
 def _solve(model, data, param, u0, active, rtol, max_steps):
-    r = levenberg_marquardt(lambda u: _residuals(model, data, param, u, active), u0, max_steps, rtol)
+    resid_held = held_residuals(model, data, param, active=active)
+    r = levenberg_marquardt(lambda u: resid_held(u, 0), u0, max_steps, rtol,
+                            blockwise(resid_held, part_blocks(param)))
     return r.u, -0.5 * r.chi2, r.success, r.n_steps
 
 
 @eqx.filter_jit
 def solve_batch(model, data, param, u0s, actives, rtol, max_steps):
     """Levenberg–Marquardt (`lm.py`) from each start u0s[s] with mask actives[s], one start
-    after the other (lax.map): (u [S, P], ln L [S], converged [S], steps [S]).
+    after the other (lax.map): (u [S, P], ln L [S], converged [S], steps [S]). The Jacobian
+    by blocks (`lm.blockwise`): the host's columns, then the clumps' with the host held.
 
     Not vmapped: a vmapped solve holds every start's Jacobian intermediates at once (a
     3-band 120² fit with 20 slots and 4 starts reached 10.8 GB and was killed) and runs
-    every start for as many steps as the slowest; on a CPU the batch bought no speed."""
-    return jax.lax.map(lambda ua: _solve(model, data, param, ua[0], ua[1], rtol, max_steps),
-                       (u0s, actives))
+    every start for as many steps as the slowest; on a CPU the batch bought no speed.
+
+    max_steps: LM steps per start, an int or ints [S] (0 for a start that only pads the
+    batch to its compiled size: it costs no step and returns ln L = −inf)."""
+    return jax.lax.map(lambda uas: _solve(model, data, param, *uas[:2], rtol, uas[2]),
+                       (u0s, actives, _per_start(max_steps, u0s.shape[0])))
 
 
-def _solve_local(model, data, param, u, idx, active, rtol, max_steps):
+def _per_start(max_steps, n):
+    return jnp.broadcast_to(jnp.asarray(max_steps, jnp.int32), (n,))
+
+
+def _solve_local(model, data, param, u, idx, active, rtol, max_steps, n_host):
     """LM over the entries idx of u only (the rest held): a fixed number of columns."""
-    r = levenberg_marquardt(lambda v: _residuals(model, data, param, u.at[idx].set(v), active),
-                            u[idx], max_steps, rtol)
+    resid_held = held_residuals(model, data, param, to_u=lambda v: u.at[idx].set(v),
+                                active=active)
+    blocks = (np.arange(n_host), np.arange(n_host, idx.shape[0]))
+    r = levenberg_marquardt(lambda v: resid_held(v, 0), u[idx], max_steps, rtol,
+                            blockwise(resid_held, blocks))
     return u.at[idx].set(r.u), -0.5 * r.chi2, r.success, r.n_steps
 
 
 @eqx.filter_jit
-def solve_local_batch(model, data, param, us, idxs, actives, rtol, max_steps):
+def solve_local_batch(model, data, param, us, idxs, actives, rtol, max_steps, n_host: int):
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
-    step is K Jacobian columns (host, background and a few clumps), not the capacity's."""
-    return jax.lax.map(lambda uia: _solve_local(model, data, param, *uia, rtol, max_steps),
-                       (us, idxs, actives))     # one start at a time: see solve_batch
+    step is K Jacobian columns (host, background and a few clumps), not the capacity's.
+    Each idxs[s] lists every host and background entry first (n_host of them, static), then
+    clump entries: the Jacobian's two blocks (`lm.blockwise`). max_steps as in solve_batch."""
+    return jax.lax.map(lambda uias: _solve_local(model, data, param, *uias[:3], rtol, uias[3],
+                                                 n_host),
+                       (us, idxs, actives, _per_start(max_steps, us.shape[0])))  # see solve_batch
 
 
 @eqx.filter_jit

@@ -23,8 +23,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .likelihood import make_residuals
+from .likelihood import predicted_images, whitened_residuals
+from .params import CLUMP_PART, HOST_PART, held, masked_clumps, part_blocks
 
 LAMBDA0 = 1e-3
 LAMBDA_MAX = 1e12
@@ -50,14 +52,62 @@ def _propose(u, r, J, lam):
     return u + delta, delta, g
 
 
-def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7) -> LMResult:
-    """Minimise |resid(u)|² over u from u0 (module doc). Traceable: vmap it for many starts."""
+def _jacfwd(resid):
     def r_and_j(u):
         def f(v):
             r = resid(v)
             return r, r
         J, r = jax.jacfwd(f, has_aux=True)(u)
         return r, J
+    return r_and_j
+
+
+def blockwise(resid_held, blocks):
+    """u ↦ (resid(u), its Jacobian) by one forward-mode pass per block of entries of u.
+
+    blocks: static int arrays partitioning u's entries (empty ones are skipped);
+    resid_held(u, b): the residual with the parts of the model that block b does not move
+    behind stop_gradient (`params.held`). A tangent of block b then skips the other parts'
+    rendering: the host's pixels (its exact strip is ~64 incomplete gammas per pixel) are
+    pushed through its own few columns, not through every clump's. The Jacobian is the same
+    as one jacfwd over u (tests/test_inference_auto.py); the residual is evaluated once more
+    per extra block.
+    """
+    blocks = [(b, np.asarray(idx, int)) for b, idx in enumerate(blocks) if np.size(idx)]
+    inverse = np.argsort(np.concatenate([idx for _, idx in blocks]))
+
+    def r_and_j(u):
+        cols = []
+        for b, idx in blocks:
+            def f(v, b=b, idx=idx):
+                r = resid_held(u.at[idx].set(v), b)
+                return r, r
+            J, r = jax.jacfwd(f, has_aux=True)(u[idx])
+            cols.append(J)
+        return r, jnp.concatenate(cols, axis=1)[:, inverse]
+    return r_and_j
+
+
+def held_residuals(scene_model, data, param, to_u=None, active=None):
+    """resid_held(v, b) for `blockwise`: the whitened residuals at u = to_u(v) (v itself when
+    None) with the clumps held for block 0 (host and background entries) and the host held
+    for block 1 (clump entries: `params.part_blocks`); active: a clump mask or None."""
+    other = (CLUMP_PART, HOST_PART)
+
+    def resid_held(v, b):
+        state = param.state(v if to_u is None else to_u(v))
+        if active is not None:
+            state = masked_clumps(state, active)
+        return whitened_residuals(predicted_images(scene_model, held(state, other[b])), data)
+    return resid_held
+
+
+def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
+                        r_and_j=None) -> LMResult:
+    """Minimise |resid(u)|² over u from u0 (module doc). Traceable: vmap it for many starts.
+    max_steps: an int or a traced integer (0: no step, u0 returned with χ² = inf).
+    r_and_j: u ↦ (resid(u), Jacobian) when given (`blockwise`), else one jacfwd of resid."""
+    r_and_j = r_and_j or _jacfwd(resid)
 
     n = u0.size
     r_shape = jax.eval_shape(resid, u0)
@@ -95,5 +145,8 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7) -> 
 
 @eqx.filter_jit
 def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-7) -> LMResult:
-    """`levenberg_marquardt` of the whitened residuals of `data` over param's u from u0."""
-    return levenberg_marquardt(make_residuals(scene_model, data, param), u0, max_steps, rtol)
+    """`levenberg_marquardt` of the whitened residuals of `data` over param's u from u0,
+    the Jacobian by blocks (host and background; clumps: `blockwise`)."""
+    resid_held = held_residuals(scene_model, data, param)
+    return levenberg_marquardt(lambda u: resid_held(u, 0), u0, max_steps, rtol,
+                               blockwise(resid_held, part_blocks(param)))

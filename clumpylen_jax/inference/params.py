@@ -71,6 +71,36 @@ def masked_clumps(state: FitState, active) -> FitState:
                        flux * jnp.asarray(active, flux.dtype)[:, None])
 
 
+HOST_PART, CLUMP_PART = "host", "clumps"
+_CLUMP_LEAVES = ("clumps.", "mass_msun", "age_myr")
+
+
+def held(state: FitState, part: str) -> FitState:
+    """The state with `part`'s parameters behind stop_gradient: "host" (bulge, disk) or
+    "clumps" (clumps, and masses and ages, which make their fluxes). Forward-mode
+    derivatives then carry symbolic-zero tangents through that part's rendering, i.e. skip
+    it, where every tangent would be zero anyway (`part_blocks`)."""
+    sg = jax.lax.stop_gradient
+    if part == HOST_PART:
+        return eqx.tree_at(lambda s: (s.source.bulge, s.source.disk), state,
+                           (sg(state.source.bulge), sg(state.source.disk)), is_leaf=lambda x: x is None)
+    return eqx.tree_at(lambda s: (s.source.clumps, s.mass_msun, s.age_myr), state,
+                       (sg(state.source.clumps), sg(state.mass_msun), sg(state.age_myr)),
+                       is_leaf=lambda x: x is None)
+
+
+def part_blocks(param: "Parametrization"):
+    """((entries of u that move the host or the background), (entries that move the clumps,
+    their masses or ages)): numpy int arrays partitioning u. Each leaf's transform is
+    elementwise, so a block's entries move only their own part of the state."""
+    host, clumps, start = [], [], 0
+    for leaf in param.leaves:
+        (clumps if leaf.path.startswith(_CLUMP_LEAVES) else host).extend(
+            range(start, start + leaf.size))
+        start += leaf.size
+    return np.asarray(host, int), np.asarray(clumps, int)
+
+
 def make_state(source: Source, n_bands: int, *, background_counts_per_s=None, mass_msun=None,
                age_myr=None, photometry=None, dtype=jnp.float64) -> FitState:
     """A FitState with every floating leaf cast to `dtype` (weak types would change jit keys)."""

@@ -62,6 +62,19 @@ class UnitImages(Light):
         return image
 
 
+class SeparableLight(Light):
+    """Round Gaussian clumps on one sub-grid: light fractions per row [ny, N] and per column
+    [nx, N] of each clump, and fluxes [N, B]; band k is rows · diag(flux[:, k]) · colsᵀ
+    (one matrix product per band, nothing of size clumps × pixels)."""
+
+    def __init__(self, rows, cols, flux):
+        self.rows, self.cols, self.flux = rows, cols, flux
+        self.dtype = jnp.result_type(rows, flux)
+
+    def add_band(self, image, k):
+        return image + (self.rows * self.flux[:, k]) @ self.cols.T
+
+
 class Renderer(eqx.Module):
     """Draws some of a source's components on the model's sub-grids."""
 

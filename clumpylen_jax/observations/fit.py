@@ -45,6 +45,7 @@ from ..inference.transforms import IDENTITY, LOG, Transform
 from ..inference.uncertainty import fisher_uncertainty
 from ..model import Accuracy, Band, build_model
 from ..source import Clumps, Sersic, Source
+from ..inference.auto import fit_clump_pixels
 from ..inference.lm import lm_fit
 
 HOST_N = (0.3, 8.0)          # host Sérsic index range
@@ -141,9 +142,12 @@ def _clumps(centers, flux, re, options) -> Optional[Clumps]:
 
 
 def make_model_factory(observations, frame, options):
-    """make_model(source) → SceneModel on the data's grids, stamps sized for the prior bounds."""
+    """make_model(source) → SceneModel on the data's grids, stamps sized for the prior bounds;
+    round n = 0.5 clumps drawn exactly without stamps (`inference.auto.fit_clump_pixels`)."""
     bands = bands_for(observations, frame)
-    acc = Accuracy(psf_oversampling=options.psf_oversampling, stamp_flux_fraction=0.999)
+    acc = Accuracy(psf_oversampling=options.psf_oversampling, stamp_flux_fraction=0.999,
+                   clump_pixels=fit_clump_pixels(options.clump_n, options.clump_shape == "round",
+                                                 lensed=False))
     host_lo, host_hi = _host_re_bounds(frame)
 
     def make_model(source: Source):
