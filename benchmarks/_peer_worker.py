@@ -15,7 +15,7 @@ area, then the PSF at detector sampling.
 - JAXtronomy: its own ``ImageModel`` with ``kwargs_numerics`` compute_mode
   "adaptive" (``jaxtronomy.ImSim.Numerics.numerics.Numerics``), ``SIS`` lens,
   ``SERSIC_ELLIPSE`` light (lenstronomy's convention; `smoothing` set to 1e-9"),
-  in batches of JAXTRONOMY_BATCH clumps above that many.
+  in batches of JAXTRONOMY_BATCH clumps (one compiled model, called per batch).
 - caustics (PyTorch): its ``LensSource`` simulator supersamples the whole field
   (``upsample_factor``, no adaptive mode), which at ss = 144 is 1.7e8 rays for
   this 90 × 90 field; so its lens's ``raytrace`` and its ``LightStack`` of
@@ -35,9 +35,10 @@ import numpy as np
 
 CHUNK = 1 << 21
 # JAXtronomy evaluates every profile on every sample at once: 100 clumps at ss = 216 (1.8e7
-# samples) was killed for memory; above this many clumps the image is the sum of calls of one
-# compiled model on batches of clumps (the image is linear in the source)
-JAXTRONOMY_BATCH = 30
+# samples) was killed for memory and batches of 30 took 8.7 GB; so the image is the sum of
+# calls of one compiled model on batches of this many clumps (the image is linear in the
+# source); ~3 GB at ss = 216
+JAXTRONOMY_BATCH = 10
 
 
 def subpixel_points(job, ss):
