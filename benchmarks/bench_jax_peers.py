@@ -166,7 +166,7 @@ def check_and_errors(lens, meta):
         ours, _, _, model = L.time_ours(c, OURS["sub1_analytic"], repeats=1, lens=ol)
         mask = L.traced_mask(model)
         adaptive = {}
-        for peer in PEERS_OF[lens]:
+        for peer in filter(available, PEERS_OF[lens]):
             (full, ad), m = run_peer(peer, lens, c, mask, [(12, 0, 1), (12, 0, 0)])
             meta.setdefault("peer_versions", {})[peer] = m["versions"]
             adaptive[peer] = ad[0]
@@ -180,7 +180,7 @@ def check_and_errors(lens, meta):
                 adaptive["caustics"], adaptive["jaxtronomy"])
     # c, mask: the 30-clump scene
     peer_imgs = {}
-    for peer in TIMED_OF[lens]:
+    for peer in TIMED_OF[lens]:         # main() runs a scene only when its timed peers exist
         res, _ = run_peer(peer, lens, c, mask, [(ss, 0, 0) for ss in PEER_SS + (REF_SS,)])
         peer_imgs[peer] = {ss: r[0] for ss, r in zip(PEER_SS + (REF_SS,), res)}
     if lens == "map":
@@ -284,6 +284,10 @@ def main(argv=None):
         meta["peer_versions"] = old["meta"].get("peer_versions", {})
         rows = [r for r in old["rows"] if not (r["lens"] in lenses and r["clumps"] in counts)]
     for lens in lenses:
+        missing = [p for p in TIMED_OF[lens] if not available(p)]
+        if missing:
+            print(f"{lens}: {missing} not installed at {[PYTHON[p] for p in missing]}: skipped")
+            continue
         if lens not in meta["scenes"]:
             meta["scenes"][lens] = check_and_errors(lens, meta)
             write_results(rows, meta)
