@@ -223,7 +223,9 @@ def near_miss(errors, peer, ss, margin=1.1):
             <= margin * errors["ours hybrid"]["max_abs_over_sigma"])
 
 
-def time_row(lens, n, ss_matched, errors):
+def time_row(lens, n, ss_matched, errors, single_call=False):
+    """One row; single_call: each peer rendered once at its matched ss only (cold; no warm
+    call, no ss = 12, no near miss), for counts where a render takes many minutes."""
     c = L.make_clumps(n)
     ol = our_lens(lens)
     row = dict(lens=lens, clumps=n, load_avg_start=os.getloadavg()[0])
@@ -241,6 +243,13 @@ def time_row(lens, n, ss_matched, errors):
         below = PEER_SS[PEER_SS.index(ss) - 1]
         if near_miss(errors, peer, below):      # within 10 % of hybrid's error: timed too
             settings.append((below, 1 if slow else 2, 0))
+        if single_call:
+            (res,), _ = run_peer(peer, lens, c, mask, [(ss, 0, 0)])
+            row[f"{peer}_ss"] = ss
+            row[f"{peer}_matched_cold_s"] = res[1]
+            row[f"{peer}_ratio_cold"] = res[1] / row["ours_hybrid_cold_s"]
+            row[f"{peer}_ratio_cold_vs_our_warm"] = res[1] / row["ours_hybrid_warm_s"]
+            continue
         res, _ = run_peer(peer, lens, c, mask, settings)
         row[f"{peer}_ss"] = ss
         row[f"{peer}_ss12_cold_s"], row[f"{peer}_ss12_warm_s"] = res[0][1:]
@@ -263,6 +272,8 @@ def main(argv=None):
     ap.add_argument("--counts", default="10,30,100,300,1000")
     ap.add_argument("--append", action="store_true",
                     help="keep the result file's checks, errors and other rows; (re)time these counts")
+    ap.add_argument("--single-call", action="store_true",
+                    help="peers: one (cold) render at the matched ss only (e.g. 1000 clumps)")
     ap.add_argument("--write-only", action="store_true",
                     help="rewrite jax_peers.md from jax_peers.json, nothing run")
     args = ap.parse_args(argv)
@@ -293,7 +304,8 @@ def main(argv=None):
             write_results(rows, meta)
         for n in counts:
             sc = meta["scenes"][lens]
-            rows.append(time_row(lens, n, sc["ss_matched"], sc["errors_30_clumps"]))
+            rows.append(time_row(lens, n, sc["ss_matched"], sc["errors_30_clumps"],
+                                 args.single_call))
             print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()},
                   flush=True)
             meta["peak_rss_mb"] = C.peak_rss_mb()
@@ -346,6 +358,10 @@ def write_results(rows, meta):
                      (f"{p}_ratio_cold", f"{p} ratio cold"),
                      (f"{p}_ss12_warm_s", f"{p} ss=12 warm"),
                      (f"{p}_ratio_same_rays", f"{p} ss=12 / ours sub=1")]
+        for p in peers:
+            if any(f"{p}_ratio_cold_vs_our_warm" in r for r in rows if r["lens"] == lens):
+                cols += [(f"{p}_ratio_cold_vs_our_warm",
+                          f"{p} one call / ours hybrid warm (single-call rows)")]
         cols += [("load_avg_start", "load avg")]
         md += [C.markdown_table([r for r in rows if r["lens"] == lens], cols), ""]
     C.write_text("jax_peers.md", "\n".join(md))
