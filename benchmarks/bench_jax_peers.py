@@ -72,8 +72,10 @@ extra, for the "map" reference) and starts each peer as
 interpreter is missing is skipped.
 
 Run: ``python benchmarks/bench_jax_peers.py [--lenses map,sis] [--counts 10,30,100,300,1000]``;
-large counts in their own process with ``--counts 1000 --append``. Writes
-benchmarks/results/jax_peers.{json,md}.
+large counts in their own process with ``--counts 300 --append`` (the stored checks and
+errors are kept); ``--single-call`` renders each peer once at its matched ss (cold only;
+for 1000 clumps, where one render takes ~15–20 min here); ``--write-only`` rewrites the
+Markdown from the JSON. Writes benchmarks/results/jax_peers.{json,md}.
 """
 
 from __future__ import annotations
