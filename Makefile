@@ -17,7 +17,7 @@ demo: $(STAMP)
 	$(BIN)/clumpylen simulate cosmic-archipelago --out out
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 tests
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal tests
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

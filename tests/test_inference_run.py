@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from astropy.io import fits
 from astropy.table import Table
 
@@ -22,6 +23,7 @@ START = eqx.tree_at(lambda s: (s.clumps.flux, s.clumps.center_arcsec), SRC,
                                                                                   [-0.02, 0.03]])))
 
 
+@pytest.mark.slow  # 19 s; test_cli_fit's emcee run covers the files written (keeps make test < 10 min)
 def test_run_fit_emcee_writes_outputs(tmp_path):
     model = toy_model(SRC, toy_bands(1), npix=21)
     noisy, _, var = eqx.filter_jit(model.observe)(SRC, jax.random.key(0))
