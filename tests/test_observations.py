@@ -20,6 +20,7 @@ from clumpylen_jax.observations import ObservationSpec, read_observation, resolv
 from clumpylen_jax.observations.config import parse_observation_scene
 from clumpylen_jax.observations.frame import fit_frame
 from clumpylen_jax.observations.units import zeropoint_mjy_sr, zeropoint_photflam
+from _cutouts import write_cutout
 
 RA0, DEC0 = 64.038142, -24.067472
 
@@ -34,21 +35,6 @@ def celestial_header(shape, pixel_arcsec, rot_deg=0.0, center=(RA0, DEC0)):
              CRPIX1=(nx + 1) / 2.0, CRPIX2=(ny + 1) / 2.0,
              CD1_1=-p * c, CD1_2=p * s, CD2_1=p * s, CD2_2=p * c)
     return h
-
-
-def write_cutout(path, sci, err=None, *, header=None, bunit="MJy/sr", extra=None, wht=None):
-    hdr = fits.Header() if header is None else header.copy()
-    if bunit is not None:
-        hdr["BUNIT"] = bunit
-    for k, v in (extra or {}).items():
-        hdr[k] = v
-    hdus = [fits.PrimaryHDU(), fits.ImageHDU(np.asarray(sci, np.float32), hdr, name="SCI")]
-    if err is not None:
-        hdus.append(fits.ImageHDU(np.asarray(err, np.float32), hdr, name="ERR"))
-    if wht is not None:
-        hdus.append(fits.ImageHDU(np.asarray(wht, np.float32), hdr, name="WHT"))
-    fits.HDUList(hdus).writeto(path, overwrite=True)
-    return str(path)
 
 
 def gaussian_psf_file(path, sigma_pix=1.2, size=15, pixel_arcsec=0.03, scale=1.0):

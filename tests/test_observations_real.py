@@ -23,27 +23,13 @@ from clumpylen_jax.observations import ObservationSpec, read_observation
 from clumpylen_jax.observations.config import load_observation_scene
 from clumpylen_jax.observations.frame import fit_frame
 from clumpylen_jax.observations.read import HUGE_SIGMA_FACTOR
+from _cutouts import write_cutout
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"
 SCENES = ROOT / "benchmarks" / "real"
 # the rxj1131 matrix (samana's transform_pix2angle): arcsec per pixel, East and North
 RXJ_MATRIX = [[0.02065827, 0.04552853], [0.04552853, -0.02065827]]
-
-
-def cutout(path, sci, err=None, *, extra=None, bunit="MJy/sr", psf=None):
-    h = fits.Header()
-    if bunit:
-        h["BUNIT"] = bunit
-    for k, v in (extra or {}).items():
-        h[k] = v
-    hdus = [fits.PrimaryHDU(), fits.ImageHDU(np.asarray(sci, np.float32), h, name="SCI")]
-    if err is not None:
-        hdus.append(fits.ImageHDU(np.asarray(err, np.float32), h, name="ERR"))
-    if psf is not None:
-        hdus.append(fits.ImageHDU(np.asarray(psf, np.float32), name="PSF"))
-    fits.HDUList(hdus).writeto(path, overwrite=True)
-    return str(path)
 
 
 def gaussian(size=11, sigma=1.3):
@@ -61,14 +47,14 @@ def test_pixels_with_a_huge_sigma_are_masked_without_numeric_trouble(tmp_path, f
     err = np.full(sci.shape, 0.02)
     err[2:5, 3:9] = flag               # a pipeline's "do not use" σ
     sci[2:5, 3:9] = 1e4                # with garbage data under it
-    ob = read_observation(ObservationSpec(filter="F150W", image=cutout(
+    ob = read_observation(ObservationSpec(filter="F150W", image=write_cutout(
         tmp_path / "h.fits", sci, err, extra={"PIXSCALE": 0.031})))
     assert (~ob.mask).sum() == 18 and not ob.mask[3, 5]
     assert np.all(np.isfinite(ob.variance)) and np.all(np.isfinite(ob.data))
     assert ob.data[3, 5] == 0.0        # not left to pull on anything
     # a σ up to the factor (a bright star's Poisson σ is ~10³ × the sky's) stays in
     err[2:5, 3:9] = 0.02 * HUGE_SIGMA_FACTOR / 10
-    ob = read_observation(ObservationSpec(filter="F150W", image=cutout(
+    ob = read_observation(ObservationSpec(filter="F150W", image=write_cutout(
         tmp_path / "s.fits", sci, err, extra={"PIXSCALE": 0.031})))
     assert ob.mask.all()
 
@@ -79,7 +65,7 @@ def test_chi2_per_dof_does_not_count_huge_sigma_pixels(tmp_path):
     sci = np.random.default_rng(6).normal(size=(20, 20))
     err = np.ones_like(sci)
     err[:10] = 1e30
-    ob = read_observation(ObservationSpec(filter="F150W", image=cutout(
+    ob = read_observation(ObservationSpec(filter="F150W", image=write_cutout(
         tmp_path / "c.fits", sci, err, extra={"PIXSCALE": 0.031})))
 
     class Fit:      # the two things chi2_per_dof reads of a fit
@@ -95,7 +81,7 @@ def test_chi2_per_dof_does_not_count_huge_sigma_pixels(tmp_path):
 
 def test_noise_model_from_the_header_when_the_scene_gives_part_or_none_of_it(tmp_path):
     sci = np.abs(np.random.default_rng(1).normal(size=(20, 20)))
-    path = cutout(tmp_path / "hst.fits", sci, bunit="e-/s",
+    path = write_cutout(tmp_path / "hst.fits", sci, bunit="e-/s",
                   extra={"PIXSCALE": 0.05, "BKG_RMS": 0.0075, "EXPTIME": 1980.0})
     mu = np.full(sci.shape, 3.0)
     want = 0.0075**2 + 3.0 / 1980.0
@@ -109,7 +95,7 @@ def test_noise_model_from_the_header_when_the_scene_gives_part_or_none_of_it(tmp
                                           noise={"background_rms": 0.01}))
     assert ob.variance_for(mu)[0, 0] == pytest.approx(1e-4 + 3.0 / 1980.0)
     # noise = {} with no BKG_RMS anywhere names the setting and the keyword
-    bare = cutout(tmp_path / "bare.fits", sci, bunit="e-/s", extra={"PIXSCALE": 0.05, "EXPTIME": 9.0})
+    bare = write_cutout(tmp_path / "bare.fits", sci, bunit="e-/s", extra={"PIXSCALE": 0.05, "EXPTIME": 9.0})
     with pytest.raises(ConfigError) as e:
         read_observation(ObservationSpec(filter="F814W", image=bare, zeropoint_ab=25.0, noise={}))
     assert e.value.setting == "observations[F814W].noise.background_rms"
@@ -124,7 +110,7 @@ def test_pix2a_header_matrix_turns_pixels_into_theta(tmp_path):
     full = {f"PIX2A{i + 1}{j + 1}": RXJ_MATRIX[i][j] for i in range(2) for j in range(2)}
     half = {"PIX2A11": RXJ_MATRIX[0][0], "PIX2A12": RXJ_MATRIX[0][1]}
     for extra, how in ((full, "PIX2A11..PIX2A22"), (half, "sky parity")):
-        ob = read_observation(ObservationSpec(filter="F150W", image=cutout(
+        ob = read_observation(ObservationSpec(filter="F150W", image=write_cutout(
             tmp_path / "m.fits", sci, np.ones_like(sci), extra={"PIXSCALE": 0.04999, **extra})))
         assert how in ob.frame_how
         fr = fit_frame([ob.frame], ["F150W"])
@@ -135,7 +121,7 @@ def test_pix2a_header_matrix_turns_pixels_into_theta(tmp_path):
         # a position angle turns with the pixels: x axis (pa_φ = 0) → atan2(θ2, θ1)
         assert float(fr.pa_theta(np.zeros(2), 0.0)[0]) == pytest.approx(math.atan2(th[1], th[0]))
     # the scene's matrix wins; without one, x is West and y North
-    ob = read_observation(ObservationSpec(filter="F150W", image=cutout(
+    ob = read_observation(ObservationSpec(filter="F150W", image=write_cutout(
         tmp_path / "n.fits", sci, np.ones_like(sci), extra={"PIXSCALE": 0.05}),
         pixel_matrix_arcsec=[[-0.05, 0.0], [0.0, 0.05]]))
     assert fit_frame([ob.frame], ["F150W"]).theta(np.array([1.0, 2.0])) == pytest.approx([1.0, 2.0])
@@ -164,14 +150,14 @@ def test_bad_matrix_or_psf_hdu_is_one_line_and_exit_2(tmp_path, capsys, case):
     elif case == "psf_nan":
         bad = gaussian()
         bad[3, 3] = np.nan
-        obs["psf"] = cutout(tmp_path / "p.fits", bad, extra={"PIXSCALE": 0.05}, bunit=None)
+        obs["psf"] = write_cutout(tmp_path / "p.fits", bad, extra={"PIXSCALE": 0.05}, bunit=None)
         needles += ["psf", "p.fits"]
     elif case == "two_orientations":
-        tables.append({"filter": "F200W", "image": cutout(tmp_path / "y.fits", sci, np.ones_like(sci),
+        tables.append({"filter": "F200W", "image": write_cutout(tmp_path / "y.fits", sci, np.ones_like(sci),
                                                           extra=extra),
                        "pixel_matrix_arcsec": RXJ_MATRIX})
         needles = ["observations[F200W]", "orientation", "y.fits"]
-    obs["image"] = cutout(tmp_path / "x.fits", sci, np.ones_like(sci), extra=extra)
+    obs["image"] = write_cutout(tmp_path / "x.fits", sci, np.ones_like(sci), extra=extra)
     text = "[scene]\nname = \"t\"\n"
     for t in tables:
         text += "\n[[observations]]\n" + "".join(
@@ -188,7 +174,7 @@ def test_bad_matrix_or_psf_hdu_is_one_line_and_exit_2(tmp_path, capsys, case):
 
 def test_psf_extension_of_the_image_file_is_found_by_name(tmp_path):
     sci = np.random.default_rng(4).normal(size=(16, 16))
-    path = cutout(tmp_path / "q.fits", sci, np.ones_like(sci), psf=gaussian() * 7.0)
+    path = write_cutout(tmp_path / "q.fits", sci, np.ones_like(sci), psf=gaussian() * 7.0)
     fits.setval(path, "PIXSCALE", value=0.05, ext=0)    # as in the rxj1131 file: primary header
     ob = read_observation(ObservationSpec(filter="F814W", image=path, psf=path))
     assert ob.psf.array.shape == (11, 11) and ob.psf.array.sum() == pytest.approx(1.0)
@@ -242,7 +228,7 @@ def _mock_arc_with_flagged_pixels(tmp_path):
     sci = img + rng.normal(0.0, sig, img.shape)
     err = np.full(img.shape, sig)
     sci[:, 36:38], err[:, 36:38] = 1e5, 1e30
-    image = cutout(tmp_path / "arc.fits", sci, err, extra={"PIXSCALE": pix})
+    image = write_cutout(tmp_path / "arc.fits", sci, err, extra={"PIXSCALE": pix})
     p = tmp_path / "psf.fits"
     fits.PrimaryHDU(psf.astype(np.float32), fits.Header({"PIXSCALE": pix})).writeto(p)
     (tmp_path / "arc.toml").write_text(
