@@ -64,7 +64,6 @@ def render_cli(out: Path):
 
 def _model_outputs(model, source, key):
     import equinox as eqx
-    import jax
     out = {}
     for k, img in enumerate(eqx.filter_jit(model.band_images)(source)):
         out[f"band_images_{k}"] = img

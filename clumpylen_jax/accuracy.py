@@ -58,7 +58,7 @@ class Accuracy:
     linearise_tolerance: float = 0.05
     stamp_flux_fraction: float = 0.9999
     source_flux_fraction: float = 0.99
-    gaussian_noise_above: Optional[float] = 1.0e4
+    gaussian_noise_above: float | None = 1.0e4
     host_subsampling: bool = False
     clump_pixels: str = "sersic"
 

@@ -2,8 +2,6 @@
 in-process where possible. Most checks fail before JAX compiles anything."""
 
 import errno
-import json
-import os
 import shutil
 import signal
 import subprocess

@@ -228,12 +228,12 @@ def _mock_arc_with_flagged_pixels(tmp_path):
     sci = img + rng.normal(0.0, sig, img.shape)
     err = np.full(img.shape, sig)
     sci[:, 36:38], err[:, 36:38] = 1e5, 1e30
-    image = write_cutout(tmp_path / "arc.fits", sci, err, extra={"PIXSCALE": pix})
+    write_cutout(tmp_path / "arc.fits", sci, err, extra={"PIXSCALE": pix})
     p = tmp_path / "psf.fits"
     fits.PrimaryHDU(psf.astype(np.float32), fits.Header({"PIXSCALE": pix})).writeto(p)
     (tmp_path / "arc.toml").write_text(
         '[scene]\nname = "mock-arc"\n\n[[observations]]\nfilter = "F150W"\n'
-        f'image = "arc.fits"\npsf = "psf.fits"\n\n[fit]\nclumps = "auto"\nmax_clumps = 4\n')
+        'image = "arc.fits"\npsf = "psf.fits"\n\n[fit]\nclumps = "auto"\nmax_clumps = 4\n')
     return str(tmp_path / "arc.toml"), knots
 
 
@@ -244,7 +244,6 @@ def test_auto_fit_of_a_mock_cutout_with_huge_sigma_pixels_through_the_command(tm
     on each knot. Measured (load 14 on 2 cores): 514 s wall, χ²/dof 1.02; the host Sérsic
     (n 5.4) took the brighter knot and two clumps its smooth light — the host/clump
     degeneracy this test pins down until the host's n range is narrowed."""
-    from astropy.table import Table
     scene, knots = _mock_arc_with_flagged_pixels(tmp_path)
     assert main(["fit", scene, "--out", str(tmp_path / "out"), "--quiet"]) == 0
     out = tmp_path / "out"

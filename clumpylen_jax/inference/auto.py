@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ConfigError, require
+from ..errors import require
 from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
 from .catalog import fit_table

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import require
 from .auto import AutoOptions, fit_clump_pixels, fit_without_truth, lensed_fit_accuracy
 
 
