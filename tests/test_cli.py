@@ -167,3 +167,15 @@ def test_plot_and_analyze(capsys, tmp_path, fake_modules):
     assert fake_modules["analyze"] == (str(tmp_path), {"snr_threshold": 3.0})
     code, _, err = run(capsys, "plot", str(tmp_path / "nope"))
     assert_user_error(code, err, "run directory not found")
+
+
+def test_long_run_memory_is_reset_after_the_command():
+    """The simulate command's memory settings (malloc thresholds, frozen collector) do not
+    outlive it: a process that goes on (a test session) collects its objects as before."""
+    import gc
+
+    from clumpylen_jax.cli import _long_run_memory
+
+    with _long_run_memory():
+        assert gc.get_freeze_count() > 0
+    assert gc.get_freeze_count() == 0

@@ -24,7 +24,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ..errors import ConfigError
 from .derived import _check_field, deflection_jacobian, field_grid, lensing_quantities
@@ -113,6 +112,8 @@ def refine_images(lens, beta1, beta2, theta1_guess, theta2_guess, *, rtol=1e-10,
     beta = beta.astype(dtype)
     if dtype == jnp.float32:  # tolerances a float32 solve can meet
         rtol, atol = max(rtol, 1e-6), max(atol, 1e-5)
+    import optimistix as optx   # here, not at the top: `simulate` never refines images (~0.5 s)
+
     solver = optx.Newton(rtol=rtol, atol=atol)
     lens_c = jax.lax.stop_gradient(lens)
     beta_c = jax.lax.stop_gradient(beta)
