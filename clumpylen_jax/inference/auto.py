@@ -630,11 +630,15 @@ def lensed_fit_accuracy(accuracy):
 
 
 def fit_clump_pixels(clump_n: float, round_clumps: bool, lensed: bool) -> str:
-    """`Accuracy.clump_pixels` for a fit's model: "round_gaussian" when its clumps are round
-    (q = 1, no shape fitted) Gaussians (Sérsic n = 0.5) in an unlensed scene, else "sersic".
+    """`Accuracy.clump_pixels` for a fit's model: in an unlensed scene whose clumps are round
+    (q = 1, no shape fitted), "round_gaussian" for Gaussians (Sérsic n = 0.5: exact) and
+    "exponential_mog" for exponentials (n = 1: 8 Gaussians, within 1e-3 of the peak pixel,
+    0.01 σ of the S1063 data, benchmarks/results/mog_accuracy.md); else "sersic".
 
-    The separable renderer is exact for those clumps and needs no stamps, which makes a
-    Levenberg–Marquardt step of the counting fit several times cheaper and its compilation
-    shorter (benchmarks/results/bench_fit_auto.md), and no clump is cut by a stamp however
-    its R_e grows. Any other clump keeps the general Sérsic renderer."""
-    return "round_gaussian" if (not lensed and round_clumps and clump_n == 0.5) else "sersic"
+    The separable renderers need no stamps, which makes a Levenberg–Marquardt step of the
+    counting fit several times cheaper and its compilation shorter
+    (benchmarks/results/bench_fit_auto.md, fit_observations.json), and no clump is cut by a
+    stamp however its R_e grows. Any other clump keeps the general Sérsic renderer."""
+    if lensed or not round_clumps:
+        return "sersic"
+    return {0.5: "round_gaussian", 1.0: "exponential_mog"}.get(float(clump_n), "sersic")
