@@ -48,10 +48,11 @@ class Accuracy:
         (`model.clumps.RoundGaussianClumps`; `build_model` refuses other clumps and lensed
         scenes); "exponential_mog": only clumps with n = 1 and q = 1 (round exponentials),
         each as a fixed mixture of 8 round Gaussians integrated the same way
-        (`gaussian_mixtures.EXPONENTIAL`): an approximation, within 1e-3 of the peak pixel
-        and 1e-3 of the flux per pixel at any R_e (benchmarks/README.md, "Gaussian
-        mixtures"), 8 times the cost of a Gaussian clump and no stamps. The clump fits
-        choose them for their round n = 0.5 and n = 1 clumps.
+        (`gaussian_mixtures.EXPONENTIAL`): an approximation, per pixel within 8.4e-4 of
+        the exact peak pixel and 3e-4 of the flux for R_e 1e-3 to 30 pixels, with or
+        without a PSF (benchmarks/results/mog_accuracy.md), 8 times the cost of a
+        Gaussian clump and no stamps. The clump fits choose these two for their round
+        n = 0.5 and n = 1 clumps (`inference.auto.fit_clump_pixels`).
     """
 
     lens_subsampling: int = 4
