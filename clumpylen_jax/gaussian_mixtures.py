@@ -18,7 +18,10 @@ from __future__ import annotations
 import numpy as np
 
 # K = 8 (scripts/fit_exponential_mog.py): |ΔI(r)| ≤ EXP_ERR_PEAK × I(0) at every radius, and
-# the enclosed light fraction within ±EXP_ERR_LIGHT at every radius
+# the enclosed light fraction within ±EXP_ERR_LIGHT at every radius. A later run of the script
+# gave constants within 0.6 % of these and the same errors (7.34e-4,
+# 6.21e-4): the least-squares path depends on rounding; these are the ones measured
+# (benchmarks/results/mog_accuracy.md, fit_observations.json).
 EXPONENTIAL = (
     (1.984508928418e-07, 1.584443604443e-05, 3.961190049645e-04, 5.582340158529e-03,
      5.160725553228e-02, 2.687087138727e-01, 5.007571711481e-01, 1.729323573964e-01),
