@@ -80,6 +80,9 @@ class AutoOptions:
         16 in ln L short, flagged not converged); a fit that converges earlier stops there.
     fit_shape: also fit each clump's q and PA (else round: most clumps are unresolved, and
         q, PA of an unresolved clump are degenerate directions that slow every fit).
+    errors: Fisher errors and the catalogue table of the final fit. False: AutoFit.uncertainty
+        and .table None, for a caller that refits from the optimum and makes its own
+        (`observations.run.auto_starts`): one compiled program of the whole model fewer.
     """
 
     max_clumps: int = 20
@@ -92,6 +95,7 @@ class AutoOptions:
     detect_snr: float = 4.0
     max_steps: int = 100
     fit_shape: bool = False
+    errors: bool = True
 
     def validate(self) -> "AutoOptions":
         require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
@@ -122,7 +126,8 @@ class AutoFit:
     state: the FitState with the kept clumps only.  param: the fixed-capacity
     Parametrization (every slot).  u, active: its optimum and mask.  uncertainty: Fisher
     errors of the free entries of kept clumps, host and background.  table: `fit_table`
-    columns + flag, n_images, blend_corr, blend_with, spread columns.  steps: one dict per
+    columns + flag, n_images, blend_corr, blend_with, spread columns (both None when
+    `AutoOptions.errors` is False).  steps: one dict per
     step.  model: the SceneModel.  log_likelihood, success: of the final fit.
     """
 
@@ -611,10 +616,13 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     lnl, active = _prune(ctx, u, lnl, active, steps)
     us, lnls, oks, b = _final(ctx, u, active, steps)
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
-    spread = _spread(ctx, us, lnls, active)
-    unc, _ = _uncertainty(ctx, u, active)
     state = masked_clumps(ctx.param.state(jnp.asarray(u)), active)
     idx = np.nonzero(active > 0)[0]
+    if not opts.errors:
+        return AutoFit(_compact(state, idx), ctx.param, None, None, steps, ctx.model, u, active,
+                       lnl, ok)
+    spread = _spread(ctx, us, lnls, active)
+    unc, _ = _uncertainty(ctx, u, active)
     table = _table(ctx, state, unc, idx, np.full(idx.size, ok), spread, n_images, zeropoints_ab)
     table.meta.update({"method": "auto", "criterion": opts.criterion,
                        "threshold": opts.resolved_threshold, "log_likelihood": lnl,
