@@ -13,7 +13,6 @@ from clumpylen_jax import gaussian_mixtures, profiles
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.model import Accuracy, Band, build_model
 from clumpylen_jax.model.clumps import RoundGaussianClumps
-from clumpylen_jax.pixels import Grid
 from clumpylen_jax.source import Clumps, Source
 
 PIX = 0.03

@@ -1,6 +1,6 @@
 """Renderers of the clumps: unlensed on each band's sub-grid (Sérsic stamps, or separable
-mixtures of round Gaussians with `clump_pixels = "round_gaussian"` or "exponential_mog"); in a lensed scene
-analytic at every ray (`source_mode = "analytic"`), or ray-traced through a tiled
+mixtures of round Gaussians: `clump_pixels = "round_gaussian"`, "exponential_mog"); in a
+lensed scene analytic at every ray (`source_mode = "analytic"`), or ray-traced through a tiled
 source-plane grid and, away from caustics, linearised (`"grid"`, `"hybrid"`)."""
 
 from __future__ import annotations
