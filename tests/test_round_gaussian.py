@@ -57,7 +57,7 @@ CASES = [(re_pix, c) for re_pix in (1e-3, 0.05, 0.3, 1.0, 3.0, 10.0, 50.0)
 def test_sigma_is_the_half_light_radius():
     """σ per R_e from b(0.5): half the light of a 2-D Gaussian within R_e, i.e.
     1 − exp(−R_e²/2σ²) = ½."""
-    s = RoundGaussianClumps.build(Source(clumps=clumps([0, 0], PIX))).sigma_per_re
+    (s,) = RoundGaussianClumps.build(Source(clumps=clumps([0, 0], PIX))).sigma_per_re
     assert 1 - np.exp(-1 / (2 * s**2)) == pytest.approx(0.5, abs=1e-15)
 
 
@@ -213,7 +213,7 @@ def test_fit_factories_choose_the_renderer_from_the_clump_options():
     from clumpylen_jax.observations.fit import make_model_factory
     from clumpylen_jax.observations.frame import BandFrame, fit_frame
     assert fit_clump_pixels(0.5, True, lensed=False) == "round_gaussian"
-    assert {fit_clump_pixels(0.5, False, lensed=False), fit_clump_pixels(1.0, True, lensed=False),
+    assert {fit_clump_pixels(0.5, False, lensed=False), fit_clump_pixels(0.7, True, lensed=False),
             fit_clump_pixels(0.5, True, lensed=True)} == {"sersic"}
 
     class _Ob:   # what make_model_factory reads of an observation

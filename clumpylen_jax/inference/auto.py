@@ -80,6 +80,9 @@ class AutoOptions:
         16 in ln L short, flagged not converged); a fit that converges earlier stops there.
     fit_shape: also fit each clump's q and PA (else round: most clumps are unresolved, and
         q, PA of an unresolved clump are degenerate directions that slow every fit).
+    errors: Fisher errors and the catalogue table of the final fit. False: AutoFit.uncertainty
+        and .table None, for a caller that refits from the optimum and makes its own
+        (`observations.run.auto_starts`): one compiled program of the whole model fewer.
     """
 
     max_clumps: int = 20
@@ -92,6 +95,7 @@ class AutoOptions:
     detect_snr: float = 4.0
     max_steps: int = 100
     fit_shape: bool = False
+    errors: bool = True
 
     def validate(self) -> "AutoOptions":
         require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
@@ -122,7 +126,8 @@ class AutoFit:
     state: the FitState with the kept clumps only.  param: the fixed-capacity
     Parametrization (every slot).  u, active: its optimum and mask.  uncertainty: Fisher
     errors of the free entries of kept clumps, host and background.  table: `fit_table`
-    columns + flag, n_images, blend_corr, blend_with, spread columns.  steps: one dict per
+    columns + flag, n_images, blend_corr, blend_with, spread columns (both None when
+    `AutoOptions.errors` is False).  steps: one dict per
     step.  model: the SceneModel.  log_likelihood, success: of the final fit.
     """
 
@@ -611,10 +616,13 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     lnl, active = _prune(ctx, u, lnl, active, steps)
     us, lnls, oks, b = _final(ctx, u, active, steps)
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
-    spread = _spread(ctx, us, lnls, active)
-    unc, _ = _uncertainty(ctx, u, active)
     state = masked_clumps(ctx.param.state(jnp.asarray(u)), active)
     idx = np.nonzero(active > 0)[0]
+    if not opts.errors:
+        return AutoFit(_compact(state, idx), ctx.param, None, None, steps, ctx.model, u, active,
+                       lnl, ok)
+    spread = _spread(ctx, us, lnls, active)
+    unc, _ = _uncertainty(ctx, u, active)
     table = _table(ctx, state, unc, idx, np.full(idx.size, ok), spread, n_images, zeropoints_ab)
     table.meta.update({"method": "auto", "criterion": opts.criterion,
                        "threshold": opts.resolved_threshold, "log_likelihood": lnl,
@@ -630,11 +638,15 @@ def lensed_fit_accuracy(accuracy):
 
 
 def fit_clump_pixels(clump_n: float, round_clumps: bool, lensed: bool) -> str:
-    """`Accuracy.clump_pixels` for a fit's model: "round_gaussian" when its clumps are round
-    (q = 1, no shape fitted) Gaussians (Sérsic n = 0.5) in an unlensed scene, else "sersic".
+    """`Accuracy.clump_pixels` for a fit's model: in an unlensed scene whose clumps are round
+    (q = 1, no shape fitted), "round_gaussian" for Gaussians (Sérsic n = 0.5: exact) and
+    "exponential_mog" for exponentials (n = 1: 8 Gaussians, within 1e-3 of the peak pixel,
+    0.01 σ of the S1063 data, benchmarks/results/mog_accuracy.md); else "sersic".
 
-    The separable renderer is exact for those clumps and needs no stamps, which makes a
-    Levenberg–Marquardt step of the counting fit several times cheaper and its compilation
-    shorter (benchmarks/results/bench_fit_auto.md), and no clump is cut by a stamp however
-    its R_e grows. Any other clump keeps the general Sérsic renderer."""
-    return "round_gaussian" if (not lensed and round_clumps and clump_n == 0.5) else "sersic"
+    The separable renderers need no stamps, which makes a Levenberg–Marquardt step of the
+    counting fit several times cheaper and its compilation shorter
+    (benchmarks/results/bench_fit_auto.md, fit_observations.json), and no clump is cut by a
+    stamp however its R_e grows. Any other clump keeps the general Sérsic renderer."""
+    if lensed or not round_clumps:
+        return "sersic"
+    return {0.5: "round_gaussian", 1.0: "exponential_mog"}.get(float(clump_n), "sersic")

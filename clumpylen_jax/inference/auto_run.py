@@ -25,8 +25,8 @@ from .auto import AutoOptions, fit_clump_pixels, fit_without_truth, lensed_fit_a
 
 def make_model_factory(prep, options: AutoOptions):
     """make_model(source) for `fit_without_truth` with `options` on the scene's bands, lens
-    and detector grids (round n = 0.5 clumps of an unlensed scene: the exact separable
-    renderer, `fit_clump_pixels`)."""
+    and detector grids (round n = 0.5 or n = 1 clumps of an unlensed scene: the separable
+    Gaussian-mixture renderer, `fit_clump_pixels`)."""
     from ..model import build_model
 
     grids = [lay.grid for lay in prep.model.layouts]

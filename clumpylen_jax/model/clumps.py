@@ -1,6 +1,6 @@
-"""Renderers of the clumps: unlensed on each band's sub-grid (Sérsic stamps, or exact
-separable round Gaussians with `clump_pixels = "round_gaussian"`); in a lensed scene
-analytic at every ray (`source_mode = "analytic"`), or ray-traced through a tiled
+"""Renderers of the clumps: unlensed on each band's sub-grid (Sérsic stamps, or separable
+mixtures of round Gaussians: `clump_pixels = "round_gaussian"`, "exponential_mog"); in a
+lensed scene analytic at every ray (`source_mode = "analytic"`), or ray-traced through a tiled
 source-plane grid and, away from caustics, linearised (`"grid"`, `"hybrid"`)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import profiles, render, tiles
+from .. import gaussian_mixtures, profiles, render, tiles
 from ..errors import ConfigError
 from ..lensing.linearised import ClumpImages, image_magnifications, lensed_clumps
 from ..pixels import Grid
@@ -68,50 +68,60 @@ class UnlensedClumps(Renderer):
 
 
 class RoundGaussianClumps(Renderer):
-    """Unlensed round Gaussian clumps (Sérsic n = 0.5, q = 1) integrated exactly over each
-    sub-grid's pixels, with no stamps (`accuracy.clump_pixels = "round_gaussian"`).
+    """Unlensed round clumps drawn as fixed mixtures of round Gaussians integrated exactly over
+    each sub-grid's pixels, with no stamps: `accuracy.clump_pixels = "round_gaussian"`
+    (Sérsic n = 0.5, one Gaussian: exact) or `"exponential_mog"` (n = 1 as
+    `gaussian_mixtures.EXPONENTIAL`: an approximation of stated error).
 
     A round Gaussian is separable: its light in pixel (i, j) is the product of its 1-D
     fractions along x in column i and along y in row j (`render.gaussian_pixel_fractions`:
-    erfc differences), so the image of N clumps is rows [ny, N] · diag(flux) · cols [nx, N]ᵀ.
-    The cost is ~2 N (nx + ny) erfc per sub-grid, exact to rounding at any R_e and any
-    centre (off the grid included), and a clump that grows in a fit is never cut by a stamp.
+    erfc differences), so the image of N clumps of K components is rows [ny, N K] ·
+    diag(flux × amplitude) · cols [nx, N K]ᵀ. The cost is ~2 N K (nx + ny) erfc per
+    sub-grid, at any R_e and any centre (off the grid included), and a clump that grows in a
+    fit is never cut by a stamp.
 
-    σ = R_e / √(2 b(0.5)) (`sigma_per_re`): the Sérsic profile at n = 0.5 is
-    exp(−b (r/R_e)²), b from `profiles.sersic_b`. The source's n, q and PA are not read
-    when rendering: `build` checks that every clump is round with n = 0.5, and a model
-    renders sources of the build's structure. Lensed scenes are out of scope (their clumps
-    are evaluated at rays through the lens, not on detector sub-grids): `build_model`
-    refuses them.
+    amplitudes, sigma_per_re: the mixture (light fraction and σ / R_e of each component).
+    The source's n, q and PA are not read when rendering: `build` checks that every clump is
+    round with the mixture's n, and a model renders sources of the build's structure.
+    Lensed scenes are out of scope (their clumps are evaluated at rays through the lens,
+    not on detector sub-grids): `build_model` refuses them.
     """
 
-    sigma_per_re: float = eqx.field(static=True)
+    amplitudes: tuple = eqx.field(static=True)
+    sigma_per_re: tuple = eqx.field(static=True)
 
     @classmethod
-    def build(cls, source: Source):
+    def build(cls, source: Source, clump_pixels: str = "round_gaussian"):
+        n_mix, amplitudes, sigma_per_re = gaussian_mixtures.round_mixture(clump_pixels)
         cl = source.clumps
         if cl is not None and cl.count > 0:
             n, q = np.asarray(cl.n, float), np.asarray(cl.q, float)
-            bad = np.nonzero((n != 0.5) | (q != 1.0))[0]
+            bad = np.nonzero((n != n_mix) | (q != 1.0))[0]
             if bad.size:
                 i = int(bad[0])
                 raise ConfigError(
-                    "render.accuracy.clump_pixels", "round_gaussian",
-                    f"clumps that are all round Gaussians (Sérsic n = 0.5, q = 1): {bad.size} "
+                    "render.accuracy.clump_pixels", clump_pixels,
+                    f"clumps that are all round with Sérsic n = {n_mix:g}, q = 1: {bad.size} "
                     f"of {cl.count} are not (clump {i}: n = {n[i]:g}, q = {q[i]:g}); "
                     'use clump_pixels = "sersic" for them')
-        return cls(float(1.0 / np.sqrt(2.0 * float(profiles.sersic_b(0.5)))))
+        return cls(amplitudes, sigma_per_re)
 
     def subgrid_light(self, source: Source, subgrids):
         cl = source.clumps
         if cl is None or cl.count == 0:
             return {}
-        sigma = cl.re_arcsec * self.sigma_per_re
+        dtype = cl.re_arcsec.dtype
+        s = jnp.asarray(self.sigma_per_re, dtype)
+        a = jnp.asarray(self.amplitudes, dtype)
+        # clump-major [N K]: component k of clump i is row i K + k
+        sigma = (cl.re_arcsec[:, None] * s[None, :]).ravel()
+        c1, c2 = (jnp.repeat(cl.center_arcsec[:, j], s.size) for j in (0, 1))
+        flux = (cl.flux[:, None, :] * a[None, :, None]).reshape(-1, cl.flux.shape[1])
         out = {}
         for g in subgrids:
-            cols = render.gaussian_pixel_fractions(g.x_edges(), cl.center_arcsec[:, 0], sigma)
-            rows = render.gaussian_pixel_fractions(g.y_edges(), cl.center_arcsec[:, 1], sigma)
-            out[g] = SeparableLight(rows.T, cols.T, cl.flux)
+            cols = render.gaussian_pixel_fractions(g.x_edges(), c1, sigma)
+            rows = render.gaussian_pixel_fractions(g.y_edges(), c2, sigma)
+            out[g] = SeparableLight(rows.T, cols.T, flux)
         return out
 
     def magnifications(self, source: Source):

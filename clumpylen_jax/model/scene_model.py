@@ -240,13 +240,14 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     layouts = tuple(DetectorBand.build(b, g, accuracy.psf_oversampling, dtype) for b, g in
                     zip(bands, _band_grids(bands, grids, field_arcsec, lens, center, radius)))
     if lens is None:
-        clumps = (RoundGaussianClumps.build(source) if accuracy.clump_pixels == "round_gaussian"
-                  else UnlensedClumps.build(source, layouts, accuracy))
+        clumps = (UnlensedClumps.build(source, layouts, accuracy)
+                  if accuracy.clump_pixels == "sersic"
+                  else RoundGaussianClumps.build(source, accuracy.clump_pixels))
         return SceneModel(layouts, UnlensedHosts.build(source, layouts, accuracy), clumps, None,
                           accuracy)
     require(accuracy.clump_pixels == "sersic", "render.accuracy.clump_pixels",
             accuracy.clump_pixels, '"sersic" for a lensed scene (clumps are evaluated at rays '
-            'through the lens; "round_gaussian" draws unlensed sub-grids only)')
+            'through the lens; the Gaussian mixtures draw unlensed sub-grids only)')
     return _lensed_model(source, layouts, lens, field_arcsec, center, radius, lens_pixel_arcsec,
                          source_pixel_arcsec, accuracy, dtype, ray_cache)
 

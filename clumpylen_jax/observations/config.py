@@ -36,12 +36,13 @@ class FitOptions:
         observation, or ra_deg/dec_deg, or theta1_arcsec/theta2_arcsec; optional
         re_arcsec).
     max_clumps: most clumps "auto" may add.  method: "map" (MAP + Fisher errors).
-    clump_n: Sérsic index of the clumps (fixed). 0.5 (round Gaussians, as the simulator's
-        clumps) is drawn exactly without stamps (`model.clumps.RoundGaussianClumps`) and
-        made the S1063 fit 3.7× faster (258 s against 942 s); the default stays 1.0
-        because there n = 0.5 counted 5 clumps where n = 1 counted 10, at a χ² worse by
-        557 (more than the 5 clumps' BIC penalty of 320: CHANGELOG, 2026-11-25 "round
-        Gaussian clumps"). Set it to 0.5 where speed matters more than that.
+    clump_n: Sérsic index of the clumps (fixed). Round clumps are drawn without stamps
+        (`model.clumps.RoundGaussianClumps`): n = 0.5 as one Gaussian (exact), n = 1 (the
+        default) as 8 Gaussians ("exponential_mog", ≤ 0.011 σ of the S1063 data from the
+        exact n = 1 pixels; the S1063 fit 990 → 411 s, same answer); other n on Sérsic
+        stamps. The default stays 1.0 because on S1063 n = 0.5 counted 5 clumps where
+        n = 1 counted 10, at a χ² worse by 557 (more than the 5 clumps' BIC penalty of
+        320: CHANGELOG, 2026-11-25 "round Gaussian clumps").
     clump_shape: "round" or "elliptical".
     clump_re_max_arcsec: the largest clump R_e a fit may reach (the stamps are built
         for it); clump_re_min_arcsec the smallest.

@@ -143,7 +143,8 @@ def _clumps(centers, flux, re, options) -> Optional[Clumps]:
 
 def make_model_factory(observations, frame, options):
     """make_model(source) → SceneModel on the data's grids, stamps sized for the prior bounds;
-    round n = 0.5 clumps drawn exactly without stamps (`inference.auto.fit_clump_pixels`)."""
+    round n = 0.5 and n = 1 clumps drawn as Gaussian mixtures without stamps
+    (`inference.auto.fit_clump_pixels`)."""
     bands = bands_for(observations, frame)
     acc = Accuracy(psf_oversampling=options.psf_oversampling, stamp_flux_fraction=0.999,
                    clump_pixels=fit_clump_pixels(options.clump_n, options.clump_shape == "round",
