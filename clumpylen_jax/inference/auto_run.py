@@ -38,9 +38,14 @@ def make_model_factory(prep, options: AutoOptions):
     acc = dataclasses.replace(acc, clump_pixels=fit_clump_pixels(
         options.clump_n, not options.fit_shape, prep.lens is not None))
 
+    render = prep.scene.render
+
     def make_model(source):
+        # the scene's lens-plane and source-plane pixels, as the simulation used (the
+        # defaults are 4× finer: 16× the rays of a 0.01" scene, 7.5 GB for 103² pixels)
         return build_model(source, prep.bands, lens=prep.lens, field_arcsec=field, accuracy=acc,
-                           dtype=prep.dtype)
+                           lens_pixel_arcsec=render.lens_pixel_arcsec,
+                           source_pixel_arcsec=render.source_pixel_arcsec, dtype=prep.dtype)
     return make_model
 
 
