@@ -86,6 +86,7 @@ class RoundGaussianClumps(Renderer):
     """
 
     sigma_per_re: float = eqx.field(static=True)
+    any_count = True
 
     @classmethod
     def build(cls, source: Source):
@@ -123,6 +124,7 @@ class AnalyticClumps(Renderer):
     """Clumps' Sérsic light evaluated at every ray of the lens plane (the reference)."""
 
     plane: LensPlane
+    any_count = True
 
     def ray_values(self, source: Source):
         """Clump flux [B, P] of the pixels with rays (counts/s), or None."""
