@@ -265,3 +265,17 @@ def test_rows_jacobian_and_fisher_are_the_full_models():
                                                 jnp.asarray(kept), active))
     f_all = np.asarray(fisher_matrix(model, param, param.physical_vector(u), data, active=active))
     assert np.allclose(f_rows, f_all[np.ix_(entries, entries)], rtol=1e-10, atol=0)
+
+
+def test_source_shape_undoes_the_lens_stretch():
+    """seeding.source_shape: an image stretched 10× along θ2 by A = diag(1, 0.1) comes from
+    a round clump; the identity keeps the shape; a rotation by φ turns the PA by −φ."""
+    from clumpylen_jax.inference.seeding import source_shape
+    q, _ = source_shape(0.1, np.pi / 2, np.diag([1.0, 0.1]))
+    assert q == pytest.approx(1.0, abs=1e-9)
+    q, pa = source_shape(0.5, 0.3, np.eye(2))
+    assert q == pytest.approx(0.5) and np.cos(2 * (pa - 0.3)) == pytest.approx(1.0)
+    phi = 0.4
+    rot = np.array([[np.cos(phi), np.sin(phi)], [-np.sin(phi), np.cos(phi)]])
+    q, pa = source_shape(0.5, 0.3, rot)
+    assert q == pytest.approx(0.5) and np.cos(2 * (pa - (0.3 - phi))) == pytest.approx(1.0)
