@@ -66,14 +66,15 @@ def run_auto_fit(prep, images, variances=None, *, out_dir=None, options=None):
 
 
 def scene_options(scene) -> AutoOptions:
-    """The fit's options from the scene: its clumps' Sérsic index and its seed; through a
-    lens, each clump's q and PA are fitted too (`AutoOptions.fit_shape`): the lens stretches
-    a clump into an arc resolved along it, whose length depends on the clump's shape and
-    orientation, and round clumps split an elongated one in two (SIS recovery seed 0: a
-    S/N 51 clump came back as two, at half its flux)."""
+    """The fit's options from the scene: its clumps' Sérsic index and its seed.
+
+    Clumps stay round through a lens too: fitting q and PA there (`AutoOptions.fit_shape`)
+    was tried on the SIS recovery scene (benchmarks/results/recovery_shape_lensed.md): an
+    elongated clump then absorbed its neighbours, 4 clumps kept instead of 6 and 2 of 6
+    recovered instead of 5 (round clumps split one elongated S/N 51 clump in two instead)."""
     cl = getattr(scene.source, "clumps", None)
     n = getattr(cl, "sersic_n", AutoOptions.clump_n) if cl is not None else AutoOptions.clump_n
-    return AutoOptions(clump_n=float(n), seed=int(scene.seed), fit_shape=scene.lens is not None)
+    return AutoOptions(clump_n=float(n), seed=int(scene.seed))
 
 
 def write_auto_fit(fit, images, variances, out_dir) -> list:
