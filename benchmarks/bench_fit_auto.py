@@ -96,7 +96,8 @@ def capacity_costs(cap, data, var, steps, joint=True):
 
     def local(max_steps):
         return capacity.solve_local_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),
-                                          jnp.asarray(idx), jnp.asarray(active), 0.0, max_steps,
+                                          jnp.asarray(idx), jnp.arange(auto.LOCAL_SLOTS)[None],
+                                          jnp.asarray(active), 0.0, max_steps,
                                           int(ctx.host_index.size))
 
     def joint_fit(max_steps):

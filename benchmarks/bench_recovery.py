@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -239,10 +240,13 @@ def _write(results, kinds, n_seeds, wall_s, name="recovery"):
     lines = ["# bench_recovery: clumpylen simulate -> clumpylen fit, images only", "",
              f"{N_CLUMPS} clumps per scene; seeds done {done} of {n_seeds} each; "
              f"{machine()['date']}; {wall_s:.0f} s wall in all", "",
-             "Per seed: simulate + fit wall time, 1-min load average when it ended (the machine "
-             "is shared), clumps found, false (unmatched) ones, recovered/true.", "",
-             "| scene | seed | fit s | load | found | false (S/N>10) | recovered |", "|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['kind']} | {r['seed']} | {r['fit_s']:.0f} | {r['load']:.1f} | {r['n_fit']} | "
+             "Per seed: fit wall time, 1-min load average when it ended (the machine "
+             "is shared), the process's peak RSS so far, clumps found, false (unmatched) ones, "
+             "recovered/true.", "",
+             "| scene | seed | fit s | load | peak RSS GB | found | false (S/N>10) | recovered |",
+             "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['kind']} | {r['seed']} | {r['fit_s']:.0f} | {r['load']:.1f} | "
+              f"{r.get('peak_rss_mb', float('nan')) / 1024:.1f} | {r['n_fit']} | "
               f"{r['false']} ({r['false_snr10']}) | {sum(c['recovered'] for c in r['clumps'])}/"
               f"{len(r['clumps'])} |" for r in results]
     lines.append("")
@@ -281,6 +285,8 @@ def main():
             for kind in kinds:
                 r = run_one(kind, seed, Path(tmp))
                 r["load"] = os.getloadavg()[0]
+                # the process's peak so far (simulate, fit and the truth S/N run in it)
+                r["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
                 results.append(r)
                 print(kind, seed, f"fit {r['fit_s']:.0f} s (load {r['load']:.1f}), found {r['n_fit']}, "
                       f"false {r['false']} (S/N>10: {r['false_snr10']}), recovered "

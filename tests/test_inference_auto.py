@@ -202,3 +202,80 @@ def test_lm_with_a_traced_zero_step_limit_takes_no_step():
     assert int(pad.n_steps) == 0 and not bool(pad.success) and np.isinf(float(pad.chi2))
     assert np.all(np.asarray(pad.u) == 1.0)
     assert bool(real.success) and int(real.n_steps) > 0
+
+
+
+def _rows_case():
+    """Four round-Gaussian clumps (no host: its exact pixels would take long to compile),
+    slot 2 inactive, rows 1 and 2 moved: (model, data, param, u, active, slots, idx, blocks)."""
+    from clumpylen_jax.inference.likelihood import make_data
+    from clumpylen_jax.inference.params import make_state, parametrize
+    cl = Clumps(jnp.asarray(np.r_[CENTERS, [[0.0, -0.3]]]), jnp.array([[4.0], [3.0], [2.0], [1.0]]),
+                jnp.array([0.02, 0.04, 0.03, 0.05]), jnp.full(4, 0.5), jnp.ones(4), jnp.zeros(4))
+    src = Source(clumps=cl)
+    model = build_model(src, BANDS, field_arcsec=FIELD,
+                        accuracy=dataclasses.replace(ACC, clump_pixels="round_gaussian"))
+    data = make_data(model, [np.zeros((NPIX, NPIX))], [np.ones((NPIX, NPIX))], kind="gaussian")
+    param = parametrize(make_state(src, 1), {
+        "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
+        "background": True})
+    # u: flux [4], β [4, 2], R_e [4], background: the background, then rows 1 and 2
+    idx = jnp.asarray(np.r_[param.size - 1, 1, 2, 4 + np.arange(2, 6), 13, 14])
+    return (model, data, param, param.initial() + 0.01, jnp.array([1.0, 1.0, 0.0, 1.0]),
+            jnp.array([1, 2]), idx, (np.arange(1), np.arange(1, idx.size)))
+
+
+def _rows_residuals(model, data, param, u, active, slots, idx):
+    """(every slot rendered with the mask, the rows moved + the others' held light)."""
+    from clumpylen_jax.inference import capacity
+    from clumpylen_jax.inference.lm import held_residuals
+    to_u = lambda v: u.at[idx].set(v)  # noqa: E731
+    return (held_residuals(model, data, param, to_u=to_u, active=active),
+            held_residuals(model, data, param, to_u=to_u, active=active, slots=slots,
+                           fixed=capacity.held_light(model, param.state(u), slots, active)))
+
+
+def test_rendering_only_the_moved_rows_is_the_full_model():
+    """capacity: a local solve draws only the clump rows it moves plus the held light of the
+    other active clumps (`held_light`); for a model whose clumps add linearly (round
+    Gaussians) its residuals are those of every slot rendered with the active mask."""
+    model, data, param, u, active, slots, idx, _ = _rows_case()
+    assert model.clumps.any_count
+    full, rows = _rows_residuals(model, data, param, u, active, slots, idx)
+    r0, r1 = (np.asarray(jax.jit(lambda v, f=f: f(v, 0))(u[idx])) for f in (full, rows))
+    assert np.abs(r1 - r0).max() <= 1e-12 * np.abs(r0).max()
+
+
+@pytest.mark.slow
+def test_rows_jacobian_and_fisher_are_the_full_models():
+    """The same (test above) for the blockwise Jacobian of a local solve, and
+    `capacity.fisher_of_rows` (kept rows only) is the kept block of the Fisher matrix of
+    every slot with the active mask."""
+    from clumpylen_jax.inference import capacity
+    from clumpylen_jax.inference.lm import blockwise
+    from clumpylen_jax.inference.uncertainty import fisher_matrix
+    model, data, param, u, active, slots, idx, blocks = _rows_case()
+    full, rows = _rows_residuals(model, data, param, u, active, slots, idx)
+    J0 = np.asarray(jax.jit(blockwise(full, blocks))(u[idx])[1])
+    J1 = np.asarray(jax.jit(blockwise(rows, blocks))(u[idx])[1])
+    assert np.abs(J1 - J0).max() <= 1e-12 * np.abs(J0).max()
+    kept = np.array([0, 1, 3])
+    entries = np.r_[param.size - 1, kept, 4 + np.ravel([[2 * k, 2 * k + 1] for k in kept]), 12 + kept]
+    f_rows = np.asarray(capacity.fisher_of_rows(model, data, param, u, jnp.asarray(entries),
+                                                jnp.asarray(kept), active))
+    f_all = np.asarray(fisher_matrix(model, param, param.physical_vector(u), data, active=active))
+    assert np.allclose(f_rows, f_all[np.ix_(entries, entries)], rtol=1e-10, atol=0)
+
+
+def test_source_shape_undoes_the_lens_stretch():
+    """seeding.source_shape: an image stretched 10× along θ2 by A = diag(1, 0.1) comes from
+    a round clump; the identity keeps the shape; a rotation by φ turns the PA by −φ."""
+    from clumpylen_jax.inference.seeding import source_shape
+    q, _ = source_shape(0.1, np.pi / 2, np.diag([1.0, 0.1]))
+    assert q == pytest.approx(1.0, abs=1e-9)
+    q, pa = source_shape(0.5, 0.3, np.eye(2))
+    assert q == pytest.approx(0.5) and np.cos(2 * (pa - 0.3)) == pytest.approx(1.0)
+    phi = 0.4
+    rot = np.array([[np.cos(phi), np.sin(phi)], [-np.sin(phi), np.cos(phi)]])
+    q, pa = source_shape(0.5, 0.3, rot)
+    assert q == pytest.approx(0.5) and np.cos(2 * (pa - (0.3 - phi))) == pytest.approx(1.0)

@@ -50,7 +50,7 @@ from .catalog import fit_table
 from .likelihood import make_data
 from .params import Free, FitState, Parametrization, make_state, masked_clumps, parametrize
 from .transforms import Transform
-from .uncertainty import Uncertainty, fisher_matrix, safe_inverse
+from .uncertainty import Uncertainty, safe_inverse
 
 CRITERIA = ("bic", "lr")
 DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
@@ -350,12 +350,14 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives):
     us, actives = np.asarray(us), np.asarray(actives, float)
     idxs = np.stack([np.concatenate([ctx.host_index, ctx.slot_index[list(sl)].ravel()])
                      for sl in slot_sets])
+    slots = np.asarray(slot_sets, int)
     m = us.shape[0]
     pad = np.arange(s) % m
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(actives[pad]), TOL, _step_limits(ctx, m), int(ctx.host_index.size))
+        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), TOL, _step_limits(ctx, m),
+        int(ctx.host_index.size))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
@@ -524,14 +526,17 @@ def _spread(ctx: _Ctx, us, lnls, active):
 
 
 def _uncertainty(ctx: _Ctx, u, active):
-    """Fisher errors of the host, background and kept clumps' entries (NaN elsewhere)."""
+    """Fisher errors of the host, background and kept clumps' entries (NaN elsewhere): the
+    Fisher matrix of those entries only (`capacity.fisher_of_rows`)."""
     x = ctx.param.physical_vector(jnp.asarray(u))
-    fisher = np.asarray(fisher_matrix(ctx.model, ctx.param, x, ctx.data, active=np.asarray(active, float)))
-    keep = np.array([not lab.startswith("clumps.") or active[int(lab.split("[")[1].split(",")[0].rstrip("]"))] > 0
-                     for lab in ctx.param.labels])
-    cov = np.full(fisher.shape, np.nan)
-    cov[np.ix_(keep, keep)] = np.asarray(safe_inverse(jnp.asarray(fisher[np.ix_(keep, keep)])))
-    return Uncertainty(ctx.param.labels, x, jnp.asarray(cov)), keep
+    kept = np.nonzero(active > 0)[0]
+    entries = np.concatenate([ctx.host_index, ctx.slot_index[kept].ravel()])
+    fisher = capacity.fisher_of_rows(ctx.model, ctx.data, ctx.param, jnp.asarray(u),
+                                     jnp.asarray(entries), jnp.asarray(kept),
+                                     jnp.asarray(active, float))
+    cov = np.full((x.size, x.size), np.nan)
+    cov[np.ix_(entries, entries)] = np.asarray(safe_inverse(fisher))
+    return Uncertainty(ctx.param.labels, x, jnp.asarray(cov))
 
 
 def _take(tree, idx):
@@ -622,7 +627,7 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
         return AutoFit(_compact(state, idx), ctx.param, None, None, steps, ctx.model, u, active,
                        lnl, ok)
     spread = _spread(ctx, us, lnls, active)
-    unc, _ = _uncertainty(ctx, u, active)
+    unc = _uncertainty(ctx, u, active)
     table = _table(ctx, state, unc, idx, np.full(idx.size, ok), spread, n_images, zeropoints_ab)
     table.meta.update({"method": "auto", "criterion": opts.criterion,
                        "threshold": opts.resolved_threshold, "log_likelihood": lnl,

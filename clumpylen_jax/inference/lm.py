@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .likelihood import predicted_images, whitened_residuals
-from .params import CLUMP_PART, HOST_PART, held, masked_clumps, part_blocks
+from .params import CLUMP_PART, HOST_PART, clump_rows, held, masked_clumps, part_blocks
 
 LAMBDA0 = 1e-3
 LAMBDA_MAX = 1e12
@@ -88,17 +88,27 @@ def blockwise(resid_held, blocks):
     return r_and_j
 
 
-def held_residuals(scene_model, data, param, to_u=None, active=None):
+def held_residuals(scene_model, data, param, to_u=None, active=None, slots=None, fixed=None):
     """resid_held(v, b) for `blockwise`: the whitened residuals at u = to_u(v) (v itself when
     None) with the clumps held for block 0 (host and background entries) and the host held
-    for block 1 (clump entries: `params.part_blocks`); active: a clump mask or None."""
+    for block 1 (clump entries: `params.part_blocks`); active: a clump mask or None.
+
+    slots, fixed: only the clump rows `slots` are rendered (`params.clump_rows`; a model
+    with `any_count` clumps) and the band images `fixed` (counts/s, no sky: the light of
+    every other clump, which the fit holds) are added to the prediction: the cost of a
+    residual is then that of the clumps it moves, not of every slot."""
     other = (CLUMP_PART, HOST_PART)
 
     def resid_held(v, b):
         state = param.state(v if to_u is None else to_u(v))
         if active is not None:
             state = masked_clumps(state, active)
-        return whitened_residuals(predicted_images(scene_model, held(state, other[b])), data)
+        if slots is not None:
+            state = clump_rows(state, slots)
+        mu = predicted_images(scene_model, held(state, other[b]))
+        if fixed is not None:
+            mu = tuple(m + f for m, f in zip(mu, fixed))
+        return whitened_residuals(mu, data)
     return resid_held
 
 

@@ -71,6 +71,16 @@ def masked_clumps(state: FitState, active) -> FitState:
                        flux * jnp.asarray(active, flux.dtype)[:, None])
 
 
+def clump_rows(state: FitState, slots) -> FitState:
+    """The state with only the clump rows `slots` (int [L], a traced array: any rows, a
+    fixed count), for a model whose clump renderer draws any number of clumps
+    (`Renderer.any_count`). Fluxes from masses and ages (`photometry`) are not supported."""
+    if state.photometry is not None:
+        raise ConfigError("clump_rows", "photometry", "a state with clump fluxes as parameters")
+    rows = jax.tree_util.tree_map(lambda a: a[slots], state.source.clumps)
+    return eqx.tree_at(lambda s: s.source.clumps, state, rows)
+
+
 HOST_PART, CLUMP_PART = "host", "clumps"
 _CLUMP_LEAVES = ("clumps.", "mass_msun", "age_myr")
 

@@ -33,7 +33,8 @@ MIN_RE_PIXELS = 0.3           # smallest R_e start of a candidate, image pixels
 class Candidates:
     """Clump candidates (source-plane, one per merged clump); arrays [K, ...] by decreasing S/N.
 
-    beta_arcsec [K, 2], flux [K, B] (intrinsic counts/s), re_arcsec, q, pa_rad [K],
+    beta_arcsec [K, 2], flux [K, B] (intrinsic counts/s), re_arcsec, q, pa_rad [K] (q and
+    PA through a lens: the image's shape mapped by the local lens Jacobian, `source_shape`),
     snr [K] (peak of the matched-filtered residual), n_images [K] (candidates merged),
     theta_pix [K, 2] (row, col of the brightest image in the reference band).
     """
@@ -82,18 +83,38 @@ def _moments(weights, x, y):
     return mx, my, float(np.sqrt(ev[1])), float(np.sqrt(ev[0])), pa
 
 
-def pixel_betas(scene_model, k: int, lens):
-    """β1, β2 (arcsec) of band k's detector pixel centres and |det A| there (1 unlensed)."""
+def pixel_jacobians(scene_model, k: int, lens):
+    """β1, β2 (arcsec) of band k's detector pixel centres and the lens Jacobian
+    A = ∂β/∂θ there ([ny, nx, 2, 2], finite differences over the pixels; identity unlensed)."""
     g = scene_model.layouts[k].grid
     x, y = np.meshgrid(g.x_centers(), g.y_centers())
     if lens is None:
-        return x, y, np.ones_like(x)
+        return x, y, np.broadcast_to(np.eye(2), x.shape + (2, 2))
     a1, a2 = lens.deflection(jnp.asarray(x), jnp.asarray(y))
     b1, b2 = x - np.asarray(a1), y - np.asarray(a2)
     p = g.pixel_arcsec
-    d11, d12 = np.gradient(b1, p, axis=1), np.gradient(b1, p, axis=0)
-    d21, d22 = np.gradient(b2, p, axis=1), np.gradient(b2, p, axis=0)
-    return b1, b2, np.abs(d11 * d22 - d12 * d21)
+    jac = np.stack([np.stack([np.gradient(b1, p, axis=1), np.gradient(b1, p, axis=0)], -1),
+                    np.stack([np.gradient(b2, p, axis=1), np.gradient(b2, p, axis=0)], -1)], -2)
+    return b1, b2, jac
+
+
+def pixel_betas(scene_model, k: int, lens):
+    """β1, β2 (arcsec) of band k's detector pixel centres and |det A| there (1 unlensed)."""
+    b1, b2, A = pixel_jacobians(scene_model, k, lens)
+    return b1, b2, np.abs(A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0])
+
+
+def source_shape(q_img: float, pa_img: float, jacobian):
+    """(q, PA) of the source-plane ellipse that the linear lens map θ ↦ β = A θ (`jacobian`
+    [2, 2]) takes the image-plane one (q, PA: major axis from +θ1) to: its second moments
+    are A Σ_θ Aᵀ. The seed of a lensed clump's shape (an image's elongation is mostly the
+    lens's, not the clump's)."""
+    c, s = np.cos(pa_img), np.sin(pa_img)
+    rot = np.array([[c, -s], [s, c]])
+    cov = jacobian @ rot @ np.diag([1.0, q_img**2]) @ rot.T @ jacobian.T
+    ev, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+    q = float(np.sqrt(max(ev[0], 0.0) / ev[1])) if ev[1] > 0 else 1.0
+    return float(np.clip(q, 0.2, 1.0)), float(np.arctan2(vec[1, 1], vec[0, 1]))
 
 
 def sky_levels(data, masks):
@@ -217,7 +238,8 @@ def find_candidates(scene_model, residuals, variances, masks, *, lens=None, psf_
     _, snr = snr_stack(residuals, variances, masks, bands)
     sm = matched_filter(snr, max(float(psf_sigma_pix[ref]), 0.7))
     peaks = find_peaks_snr(sm, threshold_snr, 4 * max_candidates)
-    b1, b2, det = pixel_betas(scene_model, ref, lens)
+    b1, b2, jac = pixel_jacobians(scene_model, ref, lens)
+    det = np.abs(jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0])
     rows = []
     for r, c, v in peaks:
         r, c = int(r), int(c)
@@ -230,6 +252,8 @@ def find_candidates(scene_model, residuals, variances, masks, *, lens=None, psf_
             flux[k] = float(np.sum(np.where(ap & (masks[k] > 0), residuals[k], 0.0)))
         _, re_img, q, pa = measure_candidate(residuals, masks, r, c, float(psf_sigma_pix[ref]),
                                              ref, g.pixel_arcsec)
+        if lens is not None:
+            q, pa = source_shape(q, pa, jac[r, c])
         rows.append((b1[r, c], b2[r, c], det[r, c], flux, re_img, q, pa, v, r, c))
     if not rows:
         z = np.zeros(0)

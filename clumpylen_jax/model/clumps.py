@@ -89,6 +89,7 @@ class RoundGaussianClumps(Renderer):
 
     amplitudes: tuple = eqx.field(static=True)
     sigma_per_re: tuple = eqx.field(static=True)
+    any_count = True
 
     @classmethod
     def build(cls, source: Source, clump_pixels: str = "round_gaussian"):
@@ -133,6 +134,7 @@ class AnalyticClumps(Renderer):
     """Clumps' Sérsic light evaluated at every ray of the lens plane (the reference)."""
 
     plane: LensPlane
+    any_count = True
 
     def ray_values(self, source: Source):
         """Clump flux [B, P] of the pixels with rays (counts/s), or None."""

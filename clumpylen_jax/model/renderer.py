@@ -76,7 +76,13 @@ class SeparableLight(Light):
 
 
 class Renderer(eqx.Module):
-    """Draws some of a source's components on the model's sub-grids."""
+    """Draws some of a source's components on the model's sub-grids.
+
+    any_count: whether it draws a source with any number of clumps (its build fixes
+    nothing per clump), so a fit may render only the clumps it moves (`inference.capacity`).
+    """
+
+    any_count = False   # a class constant, not a field
 
     @abc.abstractmethod
     def subgrid_light(self, source: Source, subgrids: dict) -> dict:
