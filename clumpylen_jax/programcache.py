@@ -27,7 +27,8 @@ cache folder must be as trusted as the code itself (as for `modelcache`).
 Every program is the same computation whether the cache is on, off or cold: the traced
 function is exported (`jax.export`) and `Exported.call` compiled, and that executable
 is called or, from the cache, the one stored after that compilation: the images are bit
-for bit the same in each case.
+for bit the same in each case. A stored program is compiled with JAX's persistent cache
+off (`_fresh_compile`), and a stored one that fails its first call is compiled again.
 """
 
 from __future__ import annotations
@@ -149,12 +150,38 @@ def call(name: str, fun, *args, folder=None):
     key = program_key(name, leaves, tree, (static, [str(i) for i in impls]))
     path = None if folder is None or key is None else Path(folder) / f"{name}-{key[:40]}.jaxexec"
     compiled = _load(path)
-    if compiled is None:
-        exp = jax.export.export(jax.jit(flat))(*specs)
-        compiled = jax.jit(exp.call).lower(*specs).compile()
-        if path is not None:
-            _store(compiled, path)
+    if compiled is not None:
+        try:    # waited for: a missing function is reported at execution, not dispatch
+            return jax.block_until_ready(compiled(*leaves))
+        except jax.errors.JaxRuntimeError:  # a file stored by older code (see _fresh_compile)
+            pass
+    exp = jax.export.export(jax.jit(flat))(*specs)
+    lowered = jax.jit(exp.call).lower(*specs)
+    compiled = lowered.compile() if path is None else _fresh_compile(lowered)
+    if path is not None:
+        _store(compiled, path)
     return compiled(*leaves)
+
+
+def _fresh_compile(lowered):
+    """`lowered.compile()` with JAX's persistent cache off for this one compilation.
+
+    An executable that JAX read back from its own cache serialises without its machine
+    code: stored here and loaded by a later process, its first call fails ("Function
+    ..._fusion not found"). That happens whenever programs/ lacks a program that jax/
+    holds (a clumpylen edit or upgrade that leaves the HLO unchanged, programs/ deleted),
+    so every program stored here is compiled by XLA in this process."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    if not jax.config.jax_enable_compilation_cache:
+        return lowered.compile()
+    jax.config.update("jax_enable_compilation_cache", False)
+    compilation_cache.reset_cache()     # JAX settles on a cache once: make it look again
+    try:
+        return lowered.compile()
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
+        compilation_cache.reset_cache()
 
 
 def _store(compiled, path):

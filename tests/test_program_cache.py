@@ -70,6 +70,57 @@ def test_unreadable_file_is_traced_again_and_replaced(tmp_path):
     assert path.read_bytes() != b"not a program"
 
 
+_IN_JAX_CACHE = """
+import sys, pathlib
+import jax, jax.numpy as jnp
+from clumpylen_jax import programcache
+from clumpylen_jax.cache import enable_compilation_cache
+
+root, step, folder = pathlib.Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+enable_compilation_cache(True, root / "jax")
+
+
+def f(x):     # slices, pads and reshapes: XLA makes fusions of them
+    y = jnp.cumsum(jnp.sin(x[::2]) * jnp.exp(x[1::2]))
+    return jnp.concatenate([y, y[::-1] ** 2])[3:70]
+
+
+x = jnp.linspace(0.0, 1.0, 200)
+if step == "older":         # older code: compiled through jax/ (a hit there stores JAX's copy)
+    programcache._fresh_compile = lambda lowered: lowered.compile()
+if step == "load":          # the stored executable, called directly
+    (path,) = (root / folder).glob("f-*.jaxexec")
+    out = programcache._load(path)(x)
+else:
+    out = programcache.call("f", f, x, folder=root / folder)
+print(float(out.sum()))
+"""
+
+
+def test_program_also_in_jax_cache_is_stored_callable(tmp_path):
+    """A program that JAX's persistent cache already holds is stored as XLA's own compile
+    (JAX's copy serialises without its machine code: a later process fails calling it), and
+    a file that older code stored that way is compiled again and replaced, not a crash.
+    Each step in its own process (JAX's persistent cache on, no symbols loaded yet)."""
+    import subprocess
+    import sys
+
+    def step(name, folder):
+        run = subprocess.run([sys.executable, "-c", _IN_JAX_CACHE, str(tmp_path), name, folder],
+                             capture_output=True, text=True, timeout=300)
+        return run.returncode, run.stdout.strip(), run.stderr[-2000:]
+
+    rc, want, err = step("older", "a")          # jax/ now holds the program
+    assert rc == 0, err
+    assert step("call", "programs")[:2] == (0, want)    # stored while jax/ holds it
+    assert step("load", "programs")[:2] == (0, want)
+    assert step("older", "b")[:2] == (0, want)          # JAX's copy stored, as older code did
+    rc, _, err = step("load", "b")
+    assert rc != 0 and "not found" in err, "JAX's copy ran: this test no longer shows the bug"
+    assert step("call", "b")[:2] == (0, want)           # compiled again and replaced
+    assert step("load", "b")[:2] == (0, want)
+
+
 def test_an_argument_without_a_stable_repr_is_not_stored(tmp_path):
     class Opaque:            # repr is an address: no key can name it across processes
         pass
