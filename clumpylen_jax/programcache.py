@@ -28,7 +28,8 @@ Every program is the same computation whether the cache is on, off or cold: the 
 function is exported (`jax.export`) and `Exported.call` compiled, and that executable
 is called or, from the cache, the one stored after that compilation: the images are bit
 for bit the same in each case. A stored program is compiled with JAX's persistent cache
-off (`_fresh_compile`), and a stored one that fails its first call is compiled again.
+off where JAX's cache held it (`_compile_own`), and a stored one that fails its first call
+is compiled again.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import functools
 import hashlib
 import pickle
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -153,28 +155,48 @@ def call(name: str, fun, *args, folder=None):
     if compiled is not None:
         try:    # waited for: a missing function is reported at execution, not dispatch
             return jax.block_until_ready(compiled(*leaves))
-        except jax.errors.JaxRuntimeError:  # a file stored by older code (see _fresh_compile)
+        except jax.errors.JaxRuntimeError:  # stored by older code (see _compile_own)
             pass
     exp = jax.export.export(jax.jit(flat))(*specs)
-    lowered = jax.jit(exp.call).lower(*specs)
-    compiled = lowered.compile() if path is None else _fresh_compile(lowered)
-    if path is not None:
-        _store(compiled, path)
+
+    def lower():
+        return jax.jit(exp.call).lower(*specs)
+
+    if path is None:
+        return lower().compile()(*leaves)
+    compiled = _compile_own(lower)
+    _store(compiled, path)
     return compiled(*leaves)
 
 
-def _fresh_compile(lowered):
-    """`lowered.compile()` with JAX's persistent cache off for this one compilation.
+def _compile_own(lower):
+    """`lower().compile()`, compiled by XLA in this process.
 
-    An executable that JAX read back from its own cache serialises without its machine
-    code: stored here and loaded by a later process, its first call fails ("Function
-    ..._fusion not found"). That happens whenever programs/ lacks a program that jax/
-    holds (a clumpylen edit or upgrade that leaves the HLO unchanged, programs/ deleted),
-    so every program stored here is compiled by XLA in this process."""
+    An executable that JAX read back from its own persistent cache serialises without its
+    machine code: stored here and loaded by a later process, its first call fails
+    ("Function ..._fusion not found"). That happens when programs/ lacks a program that
+    jax/ holds (a clumpylen edit or upgrade that leaves the program unchanged, programs/
+    deleted): then it is compiled again with JAX's cache off."""
+    hits, me = [], threading.get_ident()
+
+    def on_event(event, **_):           # called in the thread that records the event
+        if event == "/jax/compilation_cache/cache_hits" and threading.get_ident() == me:
+            hits.append(event)
+
+    monitoring.register_event_listener(on_event)
+    try:
+        compiled = lower().compile()
+    finally:
+        monitoring.unregister_event_listener(on_event)
+    # lowered anew: a Lowered keeps the executable it compiled first
+    return _fresh_compile(lower()) if hits else compiled
+
+
+def _fresh_compile(lowered):
+    """`lowered.compile()` with JAX's persistent cache off for this one compilation (for
+    the whole process while it lasts: other threads' compilations then miss it)."""
     from jax.experimental.compilation_cache import compilation_cache
 
-    if not jax.config.jax_enable_compilation_cache:
-        return lowered.compile()
     jax.config.update("jax_enable_compilation_cache", False)
     compilation_cache.reset_cache()     # JAX settles on a cache once: make it look again
     try:
