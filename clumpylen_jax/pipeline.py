@@ -90,7 +90,7 @@ class Prepared:
 
 
 def _cosmology(scene):
-    return cosmo_mod.make_cosmology(scene.cosmology.H0, scene.cosmology.Om0)
+    return cosmo_mod.scene_cosmology(scene)
 
 
 def _accuracy(scene) -> model_mod.Accuracy:
@@ -272,10 +272,19 @@ def _clump_mags(scene, table, filters, cosmology):
 
 
 def _bands(scene, accuracy):
-    """model.Band per scene band, with PSFs resolved; and the zero points."""
-    out = [model_band(b, accuracy, base_dir=scene.base_dir, setting=f"bands[{i}]")
-           for i, b in enumerate(scene.bands)]
-    return out, {b.filter: float(b.zeropoint_ab) for b in scene.bands}
+    """model.Band per scene band, with PSFs resolved."""
+    return [model_band(b, accuracy, base_dir=scene.base_dir, setting=f"bands[{i}]")
+            for i, b in enumerate(scene.bands)]
+
+
+def _bands_stage(scene, accuracy, progress):
+    with progress.stage("bands and PSFs"):
+        return _bands(scene, accuracy)
+
+
+def _zeropoints(scene) -> dict:
+    """filter -> zero point (AB) of the scene's bands."""
+    return {b.filter: float(b.zeropoint_ab) for b in scene.bands}
 
 
 def _field(scene, lens, source, accuracy):
@@ -294,17 +303,9 @@ def _field(scene, lens, source, accuracy):
                              pixel_arcsec=0.25, margin_arcsec=0.5)
 
 
-def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> Prepared:
-    """Population, photometry, lens, PSFs and the model of a scene (no rendering yet)."""
-    progress = progress or _Progress(False, 1)
-    model_mod.require_float64_mode(scene.render.dtype)
-    cosmology = _cosmology(scene)
-    accuracy = _accuracy(scene)
-    dtype = jnp.float32 if scene.render.dtype == "float32" else jnp.float64
-    filters = list(scene.band_names)
-
-    with progress.stage("bands and PSFs"):
-        bands, zps = _bands(scene, accuracy)
+def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress):
+    """The clump catalogue, the host masses left after clumps and the source with its
+    fluxes per band."""
     bulge_t, disk_t = _host_pytrees(scene, jnp.float64)
     with progress.stage("population"):
         table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology)
@@ -332,6 +333,28 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
                 jnp.asarray(np.asarray(table["q"], float)),
                 jnp.asarray(np.asarray(table["pa_rad"], float)))
         source = Source(bulge, disk, clumps).astype(dtype)
+    return table, host_masses, source
+
+
+def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> Prepared:
+    """Population, photometry, lens, PSFs and the model of a scene (no rendering yet)."""
+    progress = progress or _Progress(False, 1)
+    model_mod.require_float64_mode(scene.render.dtype)
+    cosmology = _cosmology(scene)
+    accuracy = _accuracy(scene)
+    dtype = jnp.float32 if scene.render.dtype == "float32" else jnp.float64
+    filters = list(scene.band_names)
+
+    zps = _zeropoints(scene)
+    # The PSFs (poppy's transforms in NumPy, ~1.5 s of one core per band when not cached)
+    # are made in a thread of their own while this one samples the clumps and their
+    # photometry (mostly XLA compiling, which leaves the GIL): on 2 cores the two overlap.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-psf") as pool:
+        later_bands = pool.submit(_bands_stage, scene, accuracy, progress)
+        table, host_masses, source = _population_and_photometry(scene, filters, zps,
+                                                                cosmology, dtype, progress)
+        with progress.stage("bands and PSFs (wait)"):
+            bands = later_bands.result()
     with progress.stage("lens"):
         lens = build_lens(scene, cosmology)
         field = _field(scene, lens, source, accuracy)
@@ -419,7 +442,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 6 + len(scene.bands) + 8
+    n_stages = 7 + len(scene.bands) + 8
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)

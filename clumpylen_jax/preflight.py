@@ -106,10 +106,10 @@ def _stamp_side(scene) -> float:
     size relation at the mean CMF mass."""
     from .profiles import sersic_radius_enclosing_np as _radius_enclosing
 
-    from .cosmology import arcsec_per_pc, make_cosmology
+    from .cosmology import arcsec_per_pc, scene_cosmology
 
     cl = scene.source.clumps
-    scale = arcsec_per_pc(scene.z_source, make_cosmology(scene.cosmology.H0, scene.cosmology.Om0))
+    scale = arcsec_per_pc(scene.z_source, scene_cosmology(scene))
     if cl.catalog is not None:
         from .population import read_clump_catalog
         # the scene's own scale: a catalogue giving only re_pc gets its sizes in arcsec
@@ -256,13 +256,12 @@ def warnings(scene) -> list[str]:
     pix = scene.render.source_pixel_arcsec
     if scene.lens is not None and cl is not None and cl.catalog is None:
         # sampled sizes: the smallest clump of the size relation, 2 sigma below it
-        from .cosmology import arcsec_per_pc, make_cosmology
+        from .cosmology import arcsec_per_pc, scene_cosmology
         from .population import clump_config_from_scene
         c = clump_config_from_scene(dataclasses.asdict(cl))
         re_pc = (c.size_norm_pc * (c.cmf_m_min_msun / c.size_pivot_msun) ** c.size_slope
                  * math.exp(-2 * c.size_scatter_ln))
-        re = re_pc * arcsec_per_pc(scene.z_source, make_cosmology(scene.cosmology.H0,
-                                                                  scene.cosmology.Om0))
+        re = re_pc * arcsec_per_pc(scene.z_source, scene_cosmology(scene))
         if re < SMEAR_FRACTION * pix:
             out.append(f"sampled clumps of M = cmf.m_min_msun reach R_e = {re:.2g}\" (2 sigma "
                        f"below the size relation), below {SMEAR_FRACTION:g} × "

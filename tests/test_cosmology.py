@@ -35,3 +35,34 @@ def test_bad_inputs():
         cosmo.distance_modulus(-1.0)
     with pytest.raises(ConfigError):
         cosmo.make_cosmology(H0=-3)
+
+
+def test_flat_lcdm_distances_kept_in_folder_bit_for_bit(tmp_path):
+    """A FlatLCDM with a folder gives astropy's values exactly, computed once: the second
+    call reads the file (here replaced, to see that it is read) instead of astropy."""
+    kept = cosmo.FlatLCDM(68.0, 0.31, tmp_path)
+    plain = cosmo.make_cosmology(68.0, 0.31)
+    for name, args in (("dls_ds", (0.4, 2.1)), ("arcsec_per_pc", (2.1,)),
+                       ("luminosity_distance_cm", (2.1,))):
+        fn = getattr(cosmo, name)
+        value = fn(*args, kept)
+        assert value == fn(*args, plain) and type(value) is float
+        (path,) = tmp_path.glob(f"{name}-*.txt")
+        path.write_text(repr(value * 2))
+        assert fn(*args, kept) == value * 2
+    assert cosmo.arcsec_per_pc(2.1, cosmo.FlatLCDM(68.0, 0.31)) == cosmo.arcsec_per_pc(2.1, plain)
+    np.testing.assert_array_equal(cosmo.arcsec_per_pc(np.array([1.0, 2.1]), kept),
+                                  cosmo.arcsec_per_pc(np.array([1.0, 2.1]), plain))
+    with pytest.raises(ConfigError):
+        cosmo.FlatLCDM(-1.0, 0.3)
+
+
+def test_importing_the_pipeline_leaves_astropy_cosmology_unimported():
+    """astropy.cosmology and scipy.integrate (~0.7 s of CPU) load only when a distance is
+    computed, not with the package (a warm simulate reads its distances from the cache)."""
+    import subprocess
+    import sys
+    code = ("import sys, clumpylen_jax.pipeline, clumpylen_jax.cli, clumpylen_jax.photometry; "
+            "print('astropy.cosmology' in sys.modules, 'scipy.integrate' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
