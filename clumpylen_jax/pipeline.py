@@ -185,8 +185,13 @@ def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
     return mags
 
 
-def _fixed_shape_calls(fn, chunk=1 << 16):
-    """A numpy function evaluating a jitted fn(x, y) in padded chunks of one shape (one compile)."""
+def _chunked_calls(name, fun, baked, chunk=1 << 16):
+    """A numpy function (x, y) -> fun(baked, x, y), evaluated in zero-padded chunks of one
+    shape by one program (`programcache.function`), loaded or compiled once."""
+    from . import programcache
+    pad = jnp.zeros(chunk, jnp.float64)
+    fn = programcache.function(name, fun, pad, pad, folder=_program_folder(), baked=baked)
+
     def call(x, y):
         x = np.asarray(x, float)
         y = np.asarray(y, float)
@@ -201,6 +206,11 @@ def _fixed_shape_calls(fn, chunk=1 << 16):
             out[s:s + n] = np.asarray(fn(jnp.asarray(px), jnp.asarray(py)))[:n]
         return out.reshape(x.shape)
     return call
+
+
+def _disk_brightness(baked, x, y):
+    disk, mean = baked
+    return render.disk_unit_brightness(disk, x, y, mean)
 
 
 def _sample_catalog(scene, bulge, disk, cosmology):
@@ -226,13 +236,18 @@ def _sample_catalog(scene, bulge, disk, cosmology):
     if host_cfg.mass_msun is None:
         raise ConfigError(f"source.{host_name}.mass_msun", None,
                           "the host's mass (clumps take mass_fraction of it)")
+    # programs kept in the cache folder (`_program`): a warm run neither traces nor lowers
+    # them. The host's arrays are baked into the brightness, as a jit's closure has them.
     if host_name == "disk":
         # one compiled quadrature, not hundreds of op-by-op dispatches
-        mean = eqx.filter_jit(render.disk_modulation_mean)(host_tree)
-        fn = jax.jit(lambda x, y: render.disk_unit_brightness(host_tree, x, y, mean))
+        mean = _program("population.disk_modulation_mean", render.disk_modulation_mean,
+                        host_tree)
+        brightness = _chunked_calls("population.disk_brightness", _disk_brightness,
+                                    (host_tree, mean))
         geo = host_tree.sersic
     else:
-        fn = jax.jit(lambda x, y: render.sersic_component_brightness(host_tree, x, y))
+        brightness = _chunked_calls("population.sersic_brightness",
+                                    render.sersic_component_brightness, host_tree)
         geo = host_tree
     radius = float(profiles.sersic_radius_enclosing_np(0.999, geo.re_arcsec, geo.n))
     c = np.asarray(geo.center_arcsec, float)
@@ -241,7 +256,7 @@ def _sample_catalog(scene, bulge, disk, cosmology):
     config = population.clump_config_from_scene(dataclasses.asdict(cl))
     table = population.sample_clumps(
         rng, host_mass_msun=float(host_cfg.mass_msun), mass_fraction=float(cl.mass_fraction),
-        host_brightness=_fixed_shape_calls(fn),
+        host_brightness=brightness,
         bbox_arcsec=bbox, arcsec_per_pc=scale, config=config)
     masses[host_name] = float(table.meta["host_mass_remaining_msun"])
     return table, masses
@@ -375,12 +390,15 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
 # ------------------------------------------------------------------ running and writing
 
 
+def _program_folder():
+    return cache_root() / "programs" if cache_enabled() else None
+
+
 def _program(name: str, fun, *args):
-    """fun(*args) as one program (arrays traced, every other leaf static); its traced and
-    lowered form kept between runs in the cache folder (`programcache`) unless it is off."""
+    """fun(*args) as one program (arrays traced, every other leaf static); its executable
+    kept between runs in the cache folder (`programcache`) unless it is off."""
     from . import programcache
-    folder = cache_root() / "programs" if cache_enabled() else None
-    return programcache.call(name, fun, *args, folder=folder)
+    return programcache.call(name, fun, *args, folder=_program_folder())
 
 
 def _jit_call(model, method: str, *args):

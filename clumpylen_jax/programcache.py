@@ -130,43 +130,83 @@ def _as_key_data(leaf):
     return leaf, None
 
 
-def call(name: str, fun, *args, folder=None):
+def call(name: str, fun, *args, folder=None, baked=None):
     """`fun(*args)` compiled as one program, its executable read from / written to `folder`.
 
     name: identifies `fun` (part of the key: two functions must not share a name).
     args: pytrees (equinox Modules included); arrays are the program's inputs, every
     other leaf is static (baked in). folder None: compiled here, nothing read or written.
+    baked: a pytree given to `fun` as its first argument whose arrays, too, are constants
+    of the program (part of the key by their bytes), as those a jitted closure captures:
+    XLA folds them as it does there, so that the values are those of such a jit.
     """
-    dyn, static = eqx.partition(args, _is_dynamic)
-    leaves, tree = jax.tree_util.tree_flatten(dyn)
+    program, leaves = _program(name, fun, args, folder, baked)
+    return program(leaves)
+
+
+def function(name: str, fun, *args, folder=None, baked=None):
+    """`call`'s program as a function: it takes arguments like `args` (the same structure,
+    array shapes and dtypes, and non-array leaves), and the executable is loaded or
+    compiled once for all its calls (a program called on many chunks of one shape)."""
+    program, _ = _program(name, fun, args, folder, baked)
+    return lambda *a: program(_inputs(a)[0])
+
+
+def _inputs(args):
+    """(the program's inputs, the pytree structure, typed-key implementations) of args."""
+    leaves, tree = jax.tree_util.tree_flatten(eqx.filter(args, _is_dynamic))
     pairs = [_as_key_data(x) for x in leaves]
-    leaves = [jax.numpy.asarray(x) for x, _ in pairs]
-    impls = [impl for _, impl in pairs]
+    return [jax.numpy.asarray(x) for x, _ in pairs], tree, [impl for _, impl in pairs]
+
+
+def _program(name, fun, args, folder, baked):
+    """(a `_Program` for fun at args' shapes and static leaves, args' inputs)."""
+    static = eqx.filter(args, _is_dynamic, inverse=True)
+    leaves, tree, impls = _inputs(args)
 
     def flat(*xs):
         xs = [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
               for x, impl in zip(xs, impls)]
-        return fun(*eqx.combine(jax.tree_util.tree_unflatten(tree, xs), static))
+        full = eqx.combine(jax.tree_util.tree_unflatten(tree, xs), static)
+        return fun(*full) if baked is None else fun(baked, *full)
 
     specs = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-    key = program_key(name, leaves, tree, (static, [str(i) for i in impls]))
+    key = program_key(name, leaves, tree, (static, [str(i) for i in impls], baked))
     path = None if folder is None or key is None else Path(folder) / f"{name}-{key[:40]}.jaxexec"
-    compiled = _load(path)
-    if compiled is not None:
-        try:    # waited for: a missing function is reported at execution, not dispatch
-            return jax.block_until_ready(compiled(*leaves))
-        except jax.errors.JaxRuntimeError:  # stored by older code (see _compile_own)
-            pass
-    exp = jax.export.export(jax.jit(flat))(*specs)
 
-    def lower():
-        return jax.jit(exp.call).lower(*specs)
+    def compile_():
+        exp = jax.export.export(jax.jit(flat))(*specs)
 
-    if path is None:
-        return lower().compile()(*leaves)
-    compiled = _compile_own(lower)
-    _store(compiled, path)
-    return compiled(*leaves)
+        def lower():
+            return jax.jit(exp.call).lower(*specs)
+
+        if path is None:
+            return lower().compile()
+        compiled = _compile_own(lower)
+        _store(compiled, path)
+        return compiled
+
+    return _Program(_load(path), compile_), leaves
+
+
+class _Program:
+    """An executable: the stored one, else compiled (`compile_`) at its first call. A
+    stored one whose first call fails (stored by older code, see `_compile_own`) is
+    compiled again and replaced."""
+
+    def __init__(self, stored, compile_):
+        self._exe, self._compile, self._unchecked = stored, compile_, stored is not None
+
+    def __call__(self, leaves):
+        if self._unchecked:
+            self._unchecked = False
+            try:    # waited for: a missing function is reported at execution, not dispatch
+                return jax.block_until_ready(self._exe(*leaves))
+            except jax.errors.JaxRuntimeError:
+                self._exe = None
+        if self._exe is None:
+            self._exe = self._compile()
+        return self._exe(*leaves)
 
 
 def _compile_own(lower):

@@ -131,6 +131,40 @@ def test_an_argument_without_a_stable_repr_is_not_stored(tmp_path):
     assert not list(tmp_path.glob("*"))
 
 
+def _profile(c, x):
+    """libm-heavy work on constants (cos, pow, log, atan2), as the host brightness does."""
+    return jnp.cos(c[0]) * x ** c[1] + jnp.log(c[2]) * jnp.arctan2(x, c[0])
+
+
+def test_baked_arrays_give_a_closure_jits_bits_and_are_keyed(monkeypatch, tmp_path):
+    """`baked` arrays are constants of the program, as a jit's closure has them (the
+    population's host brightness): the same bits as that jit, stored or not, and a
+    program of their own per value."""
+    c = jnp.asarray([0.3, 1.7, 2.9])
+    x = jnp.linspace(0.1, 5.0, 1001)
+    want = np.asarray(jax.jit(lambda x: _profile(c, x))(x))
+    for folder in (None, tmp_path, tmp_path):      # uncached, stored, read back
+        got = np.asarray(programcache.call("profile", _profile, x, folder=folder, baked=c))
+        assert got.tobytes() == want.tobytes()
+    programcache.call("profile", _profile, x, folder=tmp_path, baked=c + 1)
+    assert len(list(tmp_path.glob("profile-*.jaxexec"))) == 2
+
+
+def test_function_loads_its_program_once_for_all_calls(monkeypatch, tmp_path):
+    c = jnp.asarray([0.3, 1.7, 2.9])
+    x = jnp.linspace(0.1, 5.0, 64)
+    programcache.function("profile", _profile, x, folder=tmp_path, baked=c)(x)   # stored
+    loads = []
+    load = programcache._load
+    monkeypatch.setattr(programcache, "_load", lambda path: loads.append(path) or load(path))
+    _refuse_tracing(monkeypatch)
+    f = programcache.function("profile", _profile, x, folder=tmp_path, baked=c)
+    for k in range(3):
+        got = np.asarray(f(x + k))
+        assert got.tobytes() == np.asarray(jax.jit(lambda x: _profile(c, x))(x + k)).tobytes()
+    assert len(loads) == 1
+
+
 def _lensed_tiny():
     from clumpylen_jax.lensing.analytic import SIS
     from clumpylen_jax.model import Accuracy, Band

@@ -57,7 +57,8 @@ def test_make_band_is_the_scene_band():
     from clumpylen_jax import pipeline, scene as scene_mod
     text = scene_mod.builtin_scene_text("single-sersic").replace('psf = "none"', 'psf = "diffraction"')
     scene = scene_mod.scene_from_dict(__import__("tomllib").loads(text))
-    (ref,), zps = pipeline._bands(scene, pipeline._accuracy(scene))
+    (ref,) = pipeline._bands(scene, pipeline._accuracy(scene))
+    zps = pipeline._zeropoints(scene)
     band = cl.make_band("JWST/NIRCam", "F200W", exptime_s=1000.0, sky_counts_per_s=0.16,
                         accuracy=scene.render.accuracy.preset)
     assert band == ref and band.psf is not None
