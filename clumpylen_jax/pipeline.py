@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Optional
 
 import jax
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 

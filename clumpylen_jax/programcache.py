@@ -29,7 +29,8 @@ function is exported (`jax.export`) and `Exported.call` compiled, and that execu
 is called or, from the cache, the one stored after that compilation: the images are bit
 for bit the same in each case. A stored program is compiled with JAX's persistent cache
 off where JAX's cache held it (`_compile_own`), and a stored one that fails its first call
-is compiled again.
+is compiled again. `function` gives the same program as a function, loaded or compiled
+once for many calls of one shape.
 """
 
 from __future__ import annotations
