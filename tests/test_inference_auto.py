@@ -279,3 +279,57 @@ def test_source_shape_undoes_the_lens_stretch():
     rot = np.array([[np.cos(phi), np.sin(phi)], [-np.sin(phi), np.cos(phi)]])
     q, pa = source_shape(0.5, 0.3, rot)
     assert q == pytest.approx(0.5) and np.cos(2 * (pa - (0.3 - phi))) == pytest.approx(1.0)
+
+
+def test_merged_clump_is_the_pair_second_moment():
+    """Two equal round clumps on the β1 axis: one clump at their midpoint, flux summed, major
+    axis along β1 (PA 0) with σ² = c²R_e² + d², minor σ = cR_e (c: `sersic_sigma_per_re`)."""
+    c = auto.sersic_sigma_per_re(0.5)
+    assert c == pytest.approx(np.sqrt(1 / (2 * np.log(2))), rel=1e-6)  # Gaussian: R_e = σ√(2 ln 2)
+    beta, flux, re, q, pa = auto.merged_clump([[-0.02, 0.1], [0.02, 0.1]], [[1.0], [1.0]],
+                                              [0.01, 0.01], 0.5, q_range=(0.0, 1.0))
+    assert np.allclose(beta, [0.0, 0.1]) and np.allclose(flux, [2.0])
+    assert re * c == pytest.approx(np.hypot(c * 0.01, 0.02))
+    assert q == pytest.approx(c * 0.01 / np.hypot(c * 0.01, 0.02))
+    assert np.sin(pa) == pytest.approx(0.0, abs=1e-9)
+
+
+def _pair_fit(truth, seed, centers, re):
+    """Context and state of a fit with two round clumps at `centers` solved locally (what the
+    counting leaves when it splits one clump or finds two)."""
+    data, var = _observe(truth, seed)
+    opts = AutoOptions(max_clumps=3, n_starts=2, re_max_arcsec=4 * PIX).validate()
+    ctx, u0 = auto._setup(make_model, data, var, None, None, None, opts)
+    u, _ = auto._fit_host(ctx, u0, [])
+    for slot, c in enumerate(centers):
+        u = auto._set_clump(ctx, u, slot, c, [10.0], re)
+    active = np.array([1.0, 1.0, 0.0])
+    us, lnl, _, _ = auto._fit_local(ctx, u[None], [[0, 1, 2]], active[None])
+    return ctx, us[0], float(lnl[0]), active
+
+
+def test_merge_move_joins_a_split_elongated_clump_not_two_clumps():
+    """One elongated clump (q 0.35) fitted as two round ones: the merge move makes it one
+    elliptical clump with the flux and R_e near the truth. Two round clumps 4 PSF σ apart are
+    kept apart (their merge rejected by the criterion)."""
+    elong = Clumps(jnp.array([[0.0, 0.05]]), jnp.array([[20.0]]), jnp.array([0.09]),
+                   jnp.full(1, 0.5), jnp.array([0.35]), jnp.array([0.0]))
+    ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=elong), 3,
+                                    [[-0.05, 0.05], [0.05, 0.05]], 0.04)
+    steps = []
+    u, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
+    assert "merge" in [s["action"] for s in steps], steps
+    assert active.sum() == 1
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    i = int(np.argmax(active))
+    assert abs(float(cl.flux[i, 0]) / 20.0 - 1) < 0.1
+    assert abs(float(cl.re_arcsec[i]) / 0.09 - 1) < 0.15 and float(cl.q[i]) < 0.5
+
+    two = Clumps(jnp.array([[-0.06, 0.05], [0.06, 0.05]]), jnp.array([[10.0], [10.0]]),
+                 jnp.array([0.03, 0.03]), jnp.full(2, 0.5), jnp.ones(2), jnp.zeros(2))
+    ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=two), 4,
+                                    [[-0.06, 0.05], [0.06, 0.05]], 0.03)
+    steps = []
+    _, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
+    assert active.sum() == 2
+    assert "reject_merge" in [s["action"] for s in steps], steps
