@@ -15,8 +15,12 @@
    are found again in the new residual (a faint clump behind a bright one shows up only
    once the bright one is modelled). Stop at `max_clumps` or at the first rejection.
    Then clumps whose removal (without refit, which can only flatter them) the criterion
-   would accept are removed, and the final configuration is refitted from `n_starts`
-   perturbed starts (best kept, spread reported).
+   would accept are removed. Merge and shape moves (`_refine`, `AutoOptions.merge`): each
+   pair of clumps closer than MERGE_SEPARATION (R_e,i + R_e,j) is tried as one clump (flux
+   summed, centre flux-weighted, ellipse from the pair's second moment) and each round
+   clump as an elliptical one (where the renderer draws q and PA); the criterion decides.
+   Then the final configuration is refitted from `n_starts` perturbed starts (best kept,
+   spread reported).
 4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
    `flag` (0 = fine; bits in `FLAGS`) and blend columns.
 
