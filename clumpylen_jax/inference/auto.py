@@ -645,8 +645,9 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
     Moves: each close pair (`_close_pairs`) tried as one clump (`merged_clump`), and, where
     the renderer draws q and PA, each round clump tried elliptical. Up to n_starts moves are
     solved at once (local solves from the fixed-capacity batch: one compiled program for all
-    moves, none per move); the accepted move (`_judge`) with the best criterion value is made,
-    a rejected move is not tried again; until none is left. Each tried move is a step."""
+    moves, none per move); the accepted move (`_judge`) with the best criterion value is made
+    (merges first), the other accepted ones are tried again from the new state, a rejected
+    move is not tried again; until none is left. Each tried move is a step."""
     tried = set()
     while True:
         moves = [("merge", i, j) for i, j in _close_pairs(ctx, u, active)]
@@ -666,9 +667,12 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
                                       -judged[b][0] if moves[b][0] == "merge" else judged[b][0]))
         best = order[0] if order else -1
         for b, m in enumerate(moves):
-            tried.add(m)
             made = b == best
-            steps.append(dict(step=len(steps), action=m[0] if made else f"reject_{m[0]}",
+            if made or not judged[b][1]:
+                # an accepted move not made is tried again from the new state
+                tried.add(m)
+            steps.append(dict(step=len(steps), action=m[0] if made else (
+                              f"defer_{m[0]}" if judged[b][1] else f"reject_{m[0]}"),
                               slot=m[1], partner=m[2],
                               n_clumps=int(trials[b][1].sum() if made else active.sum()),
                               delta_lnL=float(lnls[b] - lnl), criterion=judged[b][0],
