@@ -107,7 +107,8 @@ def test_start_size_does_not_change_the_optimum():
     big = Clumps(jnp.array([[0.03, -0.02]]), jnp.array([[30.0]]), jnp.array([5 * PIX]),
                  jnp.full(1, 0.5), jnp.ones(1), jnp.zeros(1))
     data, var = _observe(Source(bulge=HOST, clumps=big), 2)
-    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX).validate()
+    # merge off: no q, PA in the parametrization, which `_fit` would free (round clump here)
+    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX, merge=False).validate()
     ctx, u0 = auto._setup(make_model, data, var, None, None, None, opts)
     u_host, _ = auto._fit_host(ctx, u0, [])
 
