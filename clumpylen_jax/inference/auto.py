@@ -355,8 +355,9 @@ def _step_limits(ctx: _Ctx, m: int):
 
 
 def _fit(ctx: _Ctx, u0s, actives):
-    """Solve from each start (padded to the compiled batch n_starts: the padding takes no
-    step, `_step_limits`)."""
+    """Solve every free entry from each start (padded to the compiled batch n_starts: the
+    padding takes no step, `_step_limits`). With shape moves possible (`_shape_moves`) that
+    includes every slot's q and PA: the steps use `_fit_local`, which frees them per slot."""
     s = ctx.opts.n_starts
     u0s, actives = np.asarray(u0s), np.asarray(actives, float)
     m = u0s.shape[0]
