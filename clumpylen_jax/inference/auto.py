@@ -61,6 +61,7 @@ DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
 RE_MAX_PIXELS = 2.0        # default upper bound of clump R_e: 2 finest detector pixels
 LOCAL_SLOTS = 3            # clumps free in a counting step: the new one and its 2 nearest
 MERGE_SEPARATION = 3.0     # pairs tried as one clump: centres within 3 (R_e,i + R_e,j)
+SHAPE_START_Q = 0.6        # axis ratio a shape move starts from
 TOL = 1e-6                 # Levenberg–Marquardt rtol (lm.py)
 RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the upper one
 CLUMP_Q_RANGE = (0.2, 1.0)
@@ -598,7 +599,8 @@ def _n_params(ctx: _Ctx, slots, shaped):
 def _trial(ctx: _Ctx, u, active, move):
     """(u0, active, shaped after, local slots, shaped in the solve) of a move: ("merge", i, j):
     the pair as one clump in slot i (elliptical where shape moves are on; `merged_clump`), j
-    emptied; ("shape", i, -1): clump i elliptical, started at q = 0.9 (PA free to turn).
+    emptied; ("shape", i, -1 or -2): clump i elliptical, started at q = SHAPE_START_Q with
+    the major axis along β1 or β2 (started at q 0.9, PA 0, 4 of 13 trials ran 100 steps).
     Only slot i's q, PA are solved (other shaped clumps hold theirs): every move's solve has
     as many entries, one compiled program."""
     kind, i, j = move
@@ -611,9 +613,10 @@ def _trial(ctx: _Ctx, u, active, move):
         act[j] = 0.0
         shaped[j] = False
     else:
+        # two starts (j = −1, −2): major axis along β1 or β2, the round R_e as R_e√q
+        q, pa = SHAPE_START_Q, (0.0 if j == -1 else 0.5 * np.pi)
         beta, flux, re = (np.asarray(cl.center_arcsec)[i], np.asarray(cl.flux)[i],
-                          float(cl.re_arcsec[i]))
-        q, pa = 0.9, 0.0
+                          float(cl.re_arcsec[i]) / np.sqrt(q))
     if ctx.shape_index is None:
         q, pa = 1.0, 0.0
     else:
@@ -653,7 +656,8 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
     while True:
         moves = [("merge", i, j) for i, j in _close_pairs(ctx, u, active)]
         if ctx.shape_index is not None:
-            moves += [("shape", int(i), -1) for i in np.nonzero((active > 0) & ~ctx.shaped)[0]]
+            moves += [("shape", int(i), s) for i in np.nonzero((active > 0) & ~ctx.shaped)[0]
+                      for s in (-1, -2)]
         moves = [m for m in moves if m not in tried][:ctx.opts.n_starts]
         if not moves:
             return u, lnl, active, n_images
