@@ -333,7 +333,7 @@ def test_merge_move_joins_a_split_elongated_clump_not_two_clumps():
     """One elongated clump (q 0.35) fitted as two round ones: the merge move makes it one
     elliptical clump with the flux and R_e near the truth. Two round clumps 4 PSF σ apart are
     kept apart (their merge rejected by the criterion). Slow: one compiled LM solve, 160 s
-    at load 8 on 2 cores (the program's compilation, 56 s of it)."""
+    at load 8 on 2 cores on a first run (its compilation 56 s of it), 39 s on a later one."""
     elong = Clumps(jnp.array([[0.0, 0.05]]), jnp.array([[20.0]]), jnp.array([0.09]),
                    jnp.full(1, 0.5), jnp.array([0.35]), jnp.array([0.0]))
     ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=elong), 3,
