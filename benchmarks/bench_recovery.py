@@ -23,6 +23,7 @@ Writes benchmarks/results/recovery.{json,md}.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import resource
 import tempfile
@@ -175,14 +176,16 @@ def run_one(kind, seed, work: Path):
              "re_arcsec": float(true["re_arcsec"][i]), "q": q, "recovered": bool(j >= 0)}
         if j >= 0:
             f = fit[j]
-            # the fit's clumps are round (AutoOptions.fit_shape False): its R_e estimates the
-            # circularised R_e·√q of an elliptical clump; both pulls are reported
+            # a round fitted clump's R_e estimates the circularised R_e·√q of an elliptical
+            # one; one made elliptical (merge and shape moves) has its own q: both pulls are
+            # reported, the circularised one with the fit's √q on both R_e and its error
+            qf = float(f["q"]) if "q" in fit.colnames else 1.0
             r.update(fit_flux=float(f["flux_F200W"]), fit_flux_err=float(f["flux_F200W_err"]),
                      fit_re_arcsec=float(f["re_arcsec"]), fit_re_err=float(f["re_arcsec_err"]),
                      pull_flux=float((f["flux_F200W"] - r["flux"]) / f["flux_F200W_err"]),
                      pull_re=float((f["re_arcsec"] - r["re_arcsec"]) / f["re_arcsec_err"]),
-                     pull_re_circ=float((f["re_arcsec"] - r["re_arcsec"] * np.sqrt(q))
-                                        / f["re_arcsec_err"]),
+                     pull_re_circ=float((f["re_arcsec"] * np.sqrt(qf) - r["re_arcsec"] * np.sqrt(q))
+                                        / (f["re_arcsec_err"] * np.sqrt(qf))), fit_q=qf,
                      pull_beta1=float((f["beta1_arcsec"] - true["beta1_arcsec"][i]) / f["beta1_arcsec_err"]),
                      pull_beta2=float((f["beta2_arcsec"] - true["beta2_arcsec"][i]) / f["beta2_arcsec_err"]),
                      flag=int(f["flag"]))
@@ -275,11 +278,12 @@ def main():
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--scenes", default="sis,unlensed")
     ap.add_argument("--name", default="recovery", help="results/<name>.{json,md}")
+    ap.add_argument("--keep", default=None, help="work folder kept (scenes, images, fits)")
     args = ap.parse_args()
     kinds = args.scenes.split(",")
     results = []
     t_all = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
+    with (contextlib.nullcontext(args.keep) if args.keep else tempfile.TemporaryDirectory()) as tmp:
         # seeds interleaved across scenes: a run cut short still has numbers for each
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for kind in kinds:

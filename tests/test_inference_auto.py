@@ -107,7 +107,8 @@ def test_start_size_does_not_change_the_optimum():
     big = Clumps(jnp.array([[0.03, -0.02]]), jnp.array([[30.0]]), jnp.array([5 * PIX]),
                  jnp.full(1, 0.5), jnp.ones(1), jnp.zeros(1))
     data, var = _observe(Source(bulge=HOST, clumps=big), 2)
-    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX).validate()
+    # merge off: no q, PA in the parametrization, which `_fit` would free (round clump here)
+    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX, merge=False).validate()
     ctx, u0 = auto._setup(make_model, data, var, None, None, None, opts)
     u_host, _ = auto._fit_host(ctx, u0, [])
 
@@ -279,3 +280,78 @@ def test_source_shape_undoes_the_lens_stretch():
     rot = np.array([[np.cos(phi), np.sin(phi)], [-np.sin(phi), np.cos(phi)]])
     q, pa = source_shape(0.5, 0.3, rot)
     assert q == pytest.approx(0.5) and np.cos(2 * (pa - (0.3 - phi))) == pytest.approx(1.0)
+
+
+def test_merged_clump_is_the_pair_second_moment():
+    """Two equal round clumps on the β1 axis: one clump at their midpoint, flux summed, major
+    axis along β1 (PA 0) with σ² = c²R_e² + d², minor σ = cR_e (c: `sersic_sigma_per_re`)."""
+    c = auto.sersic_sigma_per_re(0.5)
+    assert c == pytest.approx(np.sqrt(1 / (2 * np.log(2))), rel=1e-6)  # Gaussian: R_e = σ√(2 ln 2)
+    beta, flux, re, q, pa = auto.merged_clump([[-0.02, 0.1], [0.02, 0.1]], [[1.0], [1.0]],
+                                              [0.01, 0.01], 0.5, q_range=(0.0, 1.0))
+    assert np.allclose(beta, [0.0, 0.1]) and np.allclose(flux, [2.0])
+    assert re * c == pytest.approx(np.hypot(c * 0.01, 0.02))
+    assert q == pytest.approx(c * 0.01 / np.hypot(c * 0.01, 0.02))
+    assert np.sin(pa) == pytest.approx(0.0, abs=1e-9)
+
+
+def _pair_fit(truth, seed, centers, re):
+    """Context and state of a fit with two round clumps at `centers` solved locally (what the
+    counting leaves when it splits one clump or finds two)."""
+    data, var = _observe(truth, seed)
+    opts = AutoOptions(max_clumps=3, n_starts=2, re_max_arcsec=4 * PIX).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    for slot, c in enumerate(centers):
+        u = auto._set_clump(ctx, u, slot, c, [10.0], re)
+    active = np.array([1.0, 1.0, 0.0])
+    # host and the round pair solved with the moves' own program (its one elliptical slot is
+    # the empty slot 2: zero columns), so that the test compiles one solve only
+    shaped = np.array([False, False, True])
+    us, lnl, _, _ = auto._fit_local(ctx, u[None], [[2, 0, 1]], active[None], [shaped])
+    return ctx, us[0], float(lnl[0]), active
+
+
+def test_merge_and_shape_moves_are_judged_by_the_counting_criterion():
+    """BIC, n = 10⁴ pixels, one band (k = 4 per round clump): two round clumps against one
+    elliptical (2 parameters fewer) are kept when ln L drops by more than ln n ≈ 9.2 on
+    merging; against one round clump (no shape moves: 4 fewer), by more than 2 ln n."""
+    import types
+    ctx = types.SimpleNamespace(opts=AutoOptions().validate(), k_clump=4, n_pix=10_000,
+                                shaped=np.zeros(3, bool), shape_index=np.zeros((3, 2), int))
+    lnn = np.log(10_000)
+    assert auto._judge(ctx, ("merge", 0, 1), 0.0, -0.9 * lnn)[1]          # merged
+    assert not auto._judge(ctx, ("merge", 0, 1), 0.0, -1.1 * lnn)[1]      # pair kept
+    assert auto._judge(ctx, ("shape", 0, -1), 0.0, 1.1 * lnn)[1]          # q, PA justified
+    assert not auto._judge(ctx, ("shape", 0, -1), 0.0, 0.9 * lnn)[1]
+    ctx.shape_index = None
+    assert auto._judge(ctx, ("merge", 0, 1), 0.0, -1.9 * lnn)[1]
+    assert not auto._judge(ctx, ("merge", 0, 1), 0.0, -2.1 * lnn)[1]
+
+
+@pytest.mark.slow
+def test_merge_move_joins_a_split_elongated_clump_not_two_clumps():
+    """One elongated clump (q 0.35) fitted as two round ones: the merge move makes it one
+    elliptical clump with the flux and R_e near the truth. Two round clumps 4 PSF σ apart are
+    kept apart (their merge rejected by the criterion). Slow: one compiled LM solve, 160 s
+    at load 8 on 2 cores on a first run (its compilation 56 s of it), 39 s on a later one."""
+    elong = Clumps(jnp.array([[0.0, 0.05]]), jnp.array([[20.0]]), jnp.array([0.09]),
+                   jnp.full(1, 0.5), jnp.array([0.35]), jnp.array([0.0]))
+    ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=elong), 3,
+                                    [[-0.05, 0.05], [0.05, 0.05]], 0.04)
+    steps = []
+    u, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
+    assert "merge" in [s["action"] for s in steps], steps
+    assert active.sum() == 1
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    i = int(np.argmax(active))
+    assert abs(float(cl.flux[i, 0]) / 20.0 - 1) < 0.1
+    assert abs(float(cl.re_arcsec[i]) / 0.09 - 1) < 0.15 and float(cl.q[i]) < 0.5
+
+    two = Clumps(jnp.array([[-0.06, 0.05], [0.06, 0.05]]), jnp.array([[10.0], [10.0]]),
+                 jnp.array([0.03, 0.03]), jnp.full(2, 0.5), jnp.ones(2), jnp.zeros(2))
+    ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=two), 4,
+                                    [[-0.06, 0.05], [0.06, 0.05]], 0.03)
+    steps = []
+    _, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
+    assert active.sum() == 2
+    assert "reject_merge" in [s["action"] for s in steps], steps

@@ -15,8 +15,12 @@
    are found again in the new residual (a faint clump behind a bright one shows up only
    once the bright one is modelled). Stop at `max_clumps` or at the first rejection.
    Then clumps whose removal (without refit, which can only flatter them) the criterion
-   would accept are removed, and the final configuration is refitted from `n_starts`
-   perturbed starts (best kept, spread reported).
+   would accept are removed. Merge and shape moves (`_refine`, `AutoOptions.merge`): each
+   pair of clumps closer than MERGE_SEPARATION (R_e,i + R_e,j) is tried as one clump (flux
+   summed, centre flux-weighted, ellipse from the pair's second moment) and each round
+   clump as an elliptical one (where the renderer draws q and PA); the criterion decides.
+   Then the final configuration is refitted from `n_starts` perturbed starts (best kept,
+   spread reported).
 4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
    `flag` (0 = fine; bits in `FLAGS`) and blend columns.
 
@@ -56,6 +60,8 @@ CRITERIA = ("bic", "lr")
 DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
 RE_MAX_PIXELS = 2.0        # default upper bound of clump R_e: 2 finest detector pixels
 LOCAL_SLOTS = 3            # clumps free in a counting step: the new one and its 2 nearest
+MERGE_SEPARATION = 3.0     # pairs tried as one clump: centres within 3 (R_e,i + R_e,j)
+SHAPE_START_Q = 0.6        # axis ratio a shape move starts from
 TOL = 1e-6                 # Levenberg–Marquardt rtol (lm.py)
 RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the upper one
 CLUMP_Q_RANGE = (0.2, 1.0)
@@ -83,6 +89,9 @@ class AutoOptions:
     errors: Fisher errors and the catalogue table of the final fit. False: AutoFit.uncertainty
         and .table None, for a caller that refits from the optimum and makes its own
         (`observations.run.auto_starts`): one compiled program of the whole model fewer.
+    merge: after pruning, the merge and shape moves (`_refine`): close pairs tried as one
+        clump, round clumps tried elliptical (where the renderer draws q and PA: a lensed
+        fit, or clump_pixels "sersic"), each kept by the criterion.
     """
 
     max_clumps: int = 20
@@ -96,6 +105,7 @@ class AutoOptions:
     max_steps: int = 100
     fit_shape: bool = False
     errors: bool = True
+    merge: bool = True
 
     def validate(self) -> "AutoOptions":
         require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
@@ -112,6 +122,7 @@ class AutoOptions:
         require(self.detect_snr > 0, "fit.detect_snr", self.detect_snr, "a S/N > 0")
         require(isinstance(self.max_steps, (int, np.integer)) and self.max_steps >= 1,
                 "fit.max_steps", self.max_steps, "an integer ≥ 1")
+        require(isinstance(self.merge, (bool, np.bool_)), "fit.merge", self.merge, "true or false")
         return self
 
     @property
@@ -179,12 +190,14 @@ def _host_free(source: Source, box_lo, box_hi):
     return free
 
 
-def _free(source: Source, re_lo, re_hi, box_lo, box_hi, fit_shape: bool):
+def _free(source: Source, re_lo, re_hi, box_lo, box_hi, shape_free: bool):
+    """Free entries; shape_free: every clump's q and PA in the parametrization (fitted for all
+    with fit_shape; for the shape moves, only those of a clump made elliptical)."""
     free = _host_free(source, box_lo, box_hi)
     free.update({"clumps.flux": True,
                  "clumps.center_arcsec": Free(True, Transform("bounded", box_lo, box_hi)),
                  "clumps.re_arcsec": Free(True, Transform("log_bounded", re_lo, re_hi))})
-    if fit_shape:
+    if shape_free:
         free.update({"clumps.q": Free(True, Transform("bounded", *CLUMP_Q_RANGE)),
                      "clumps.pa_rad": True})
     free["background"] = True
@@ -230,6 +243,8 @@ class _Ctx:
     re_bounds: tuple
     host_index: np.ndarray     # entries of u that are not clumps' (host, background)
     slot_index: np.ndarray     # [capacity, k_clump]: entries of u of each clump slot
+    shape_index: Optional[np.ndarray] = None   # [capacity, 2]: q, PA entries (shape moves)
+    shaped: Optional[np.ndarray] = None        # bool [capacity]: q, PA fitted for this slot
 
     @property
     def cap(self):
@@ -269,29 +284,42 @@ def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptio
     lo, hi = _box(model, lens, host, 2 * re_hi)
     state = make_state(src, nb, background_counts_per_s=sky - np.array(
         [lay.sky_counts_per_s for lay in model.layouts]))
-    param = parametrize(state, _free(src, re_lo, re_hi, lo, hi, opts.fit_shape))
+    shape_moves = _shape_moves(model, opts)
+    param = parametrize(state, _free(src, re_lo, re_hi, lo, hi, opts.fit_shape or shape_moves))
     idata = make_data(model, data, variances, masks, kind="gaussian")
     k_clump = nb + (5 if opts.fit_shape else 3)
-    n_host = param.size - opts.max_clumps * k_clump
-    host_index, slot_index = _index_tables(param, opts.max_clumps)
-    ctx = _Ctx(model, idata, param, opts, lens, variances, masks, idata.n_pixels, k_clump, n_host,
-               capacity.psf_sigma_pixels(model), (re_lo, re_hi), host_index, slot_index)
+    host_index, slot_index, shape_index = _index_tables(param, opts.max_clumps,
+                                                        split_shape=shape_moves)
+    ctx = _Ctx(model, idata, param, opts, lens, variances, masks, idata.n_pixels, k_clump,
+               int(host_index.size), capacity.psf_sigma_pixels(model), (re_lo, re_hi),
+               host_index, slot_index, shape_index, np.zeros(opts.max_clumps, bool))
     return ctx, param.initial()
 
 
-def _index_tables(param: Parametrization, cap: int):
-    """(entries of u outside the clumps, [cap, k] entries of each clump slot)."""
-    host, slots, start = [], [[] for _ in range(cap)], 0
+def _shape_moves(model, opts: AutoOptions) -> bool:
+    """Whether `_refine` may make a round clump elliptical: merges on, clumps otherwise round,
+    and a renderer that draws q and PA (the separable round ones do not)."""
+    return bool(opts.merge and not opts.fit_shape
+                and getattr(model.accuracy, "clump_pixels", "sersic") == "sersic")
+
+
+def _index_tables(param: Parametrization, cap: int, split_shape: bool = False):
+    """(entries of u outside the clumps, [cap, k] entries of each clump slot, [cap, 2] q and PA
+    entries of each slot or None). split_shape: q and PA are kept out of the [cap, k] table
+    (held unless a shape move frees them); else they are in it when free."""
+    host, slots, shape, start = [], [[] for _ in range(cap)], [[] for _ in range(cap)], 0
     for leaf in param.leaves:
         pos = start + np.arange(leaf.size)
         if leaf.path.startswith("clumps."):
             per_row = int(np.prod(leaf.shape[1:])) if len(leaf.shape) > 1 else 1
+            table = shape if split_shape and leaf.path in ("clumps.q", "clumps.pa_rad") else slots
             for p, i in zip(pos, leaf.index):
-                slots[i // per_row].append(int(p))
+                table[i // per_row].append(int(p))
         else:
             host.extend(int(p) for p in pos)
         start += leaf.size
-    return np.asarray(host, int), np.asarray(slots, int)
+    return (np.asarray(host, int), np.asarray(slots, int),
+            np.asarray(shape, int) if split_shape else None)
 
 
 @dataclasses.dataclass
@@ -328,8 +356,9 @@ def _step_limits(ctx: _Ctx, m: int):
 
 
 def _fit(ctx: _Ctx, u0s, actives):
-    """Solve from each start (padded to the compiled batch n_starts: the padding takes no
-    step, `_step_limits`)."""
+    """Solve every free entry from each start (padded to the compiled batch n_starts: the
+    padding takes no step, `_step_limits`). With shape moves possible (`_shape_moves`) that
+    includes every slot's q and PA: the steps use `_fit_local`, which frees them per slot."""
     s = ctx.opts.n_starts
     u0s, actives = np.asarray(u0s), np.asarray(actives, float)
     m = u0s.shape[0]
@@ -344,12 +373,26 @@ def _fit(ctx: _Ctx, u0s, actives):
     return np.asarray(us)[:m], lnl[:m], np.asarray(ok)[:m], np.asarray(steps)[:m]
 
 
-def _fit_local(ctx: _Ctx, us, slot_sets, actives):
-    """LM over host, background and the clump slots slot_sets[s] of each start only."""
+def _entries(ctx: _Ctx, slots, shaped=None):
+    """Entries of u a local solve frees: host and background, then each slot's (flux, β, R_e,
+    and its q, PA where shaped[slot], default ctx.shaped)."""
+    shaped = ctx.shaped if shaped is None else shaped
+    parts = [ctx.host_index]
+    for i in slots:
+        parts.append(ctx.slot_index[i])
+        if ctx.shape_index is not None and shaped[i]:
+            parts.append(ctx.shape_index[i])
+    return np.concatenate(parts)
+
+
+def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None):
+    """LM over host, background and the clump slots slot_sets[s] of each start only (their
+    q, PA too where shaped_sets[s][slot]; default ctx.shaped). Every start's entries must
+    be as many (one compiled program per count)."""
     s = ctx.opts.n_starts
     us, actives = np.asarray(us), np.asarray(actives, float)
-    idxs = np.stack([np.concatenate([ctx.host_index, ctx.slot_index[list(sl)].ravel()])
-                     for sl in slot_sets])
+    idxs = np.stack([_entries(ctx, sl, shaped) for sl, shaped in
+                     zip(slot_sets, shaped_sets or [None] * len(slot_sets))])
     slots = np.asarray(slot_sets, int)
     m = us.shape[0]
     pad = np.arange(s) % m
@@ -491,6 +534,168 @@ def _prune(ctx: _Ctx, u, lnl, active, steps):
     return lnl, active
 
 
+def sersic_sigma_per_re(n: float) -> float:
+    """Per-axis rms radius of a round Sérsic profile of index n, in units of its R_e:
+    √(Γ(4n) / (2 b²ⁿ Γ(2n))) with b from Γ(2n, b) = Γ(2n)/2 (0.849 for n = 0.5, 1.03 for 1)."""
+    from scipy.special import gammainccinv, gammaln
+    b = gammainccinv(2 * n, 0.5)
+    return float(np.sqrt(0.5 * np.exp(gammaln(4 * n) - gammaln(2 * n) - 2 * n * np.log(b))))
+
+
+def merged_clump(beta, flux, re, n: float, q_range=CLUMP_Q_RANGE):
+    """One clump with the light of several round ones: (β [2], flux [B], R_e, q, PA).
+
+    beta [m, 2] (arcsec), flux [m, B], re [m] (arcsec, round clumps of Sérsic index n). Fluxes
+    summed; centre flux-weighted (first band); the second moment of the light (each clump's
+    own σ² = (c·R_e)² per axis, `sersic_sigma_per_re`, plus its offset) gives the ellipse:
+    R_e of the major axis, q = σ_minor/σ_major (clipped into q_range), PA counter-clockwise
+    from +β1 (the `Sersic` conventions)."""
+    beta, flux, re = np.asarray(beta, float), np.asarray(flux, float), np.asarray(re, float)
+    w = np.clip(flux[:, 0], 1e-300, None)
+    w = w / w.sum()
+    c = w @ beta
+    d = beta - c
+    k = sersic_sigma_per_re(n)
+    m2 = np.einsum("i,ij,ik->jk", w, d, d) + np.eye(2) * float(w @ (k * re) ** 2)
+    val, vec = np.linalg.eigh(m2)
+    q = float(np.clip(np.sqrt(max(val[0], 0.0) / val[1]), q_range[0] + 0.05, q_range[1] - 0.05))
+    pa = float(np.arctan2(vec[1, 1], vec[0, 1]))
+    return c, flux.sum(axis=0), float(np.sqrt(val[1]) / k), q, pa
+
+
+def _set_clump(ctx: _Ctx, u, slot: int, beta, flux, re, q=1.0, pa=0.0):
+    """u with slot `slot` set to these values (R_e clipped inside its bounds)."""
+    st = ctx.param.state(jnp.asarray(u))
+    re_lo, re_hi = ctx.re_bounds
+    cl = st.source.clumps
+    cl = eqx.tree_at(lambda c: (c.center_arcsec, c.flux, c.re_arcsec, c.q, c.pa_rad), cl,
+                     (cl.center_arcsec.at[slot].set(jnp.asarray(beta, float)),
+                      cl.flux.at[slot].set(jnp.asarray(flux, float)),
+                      cl.re_arcsec.at[slot].set(float(np.clip(re, 3 * re_lo, 0.9 * re_hi))),
+                      cl.q.at[slot].set(q), cl.pa_rad.at[slot].set(pa)))
+    return np.asarray(ctx.param.initial(eqx.tree_at(lambda s: s.source.clumps, st, cl)))
+
+
+def _close_pairs(ctx: _Ctx, u, active):
+    """Active pairs (i, j) whose centres are within MERGE_SEPARATION · (R_e,i + R_e,j) in the
+    source plane, closest (in those units) first."""
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    c, re = np.asarray(cl.center_arcsec), np.asarray(cl.re_arcsec)
+    idx = np.nonzero(active > 0)[0]
+    pairs = []
+    for a, i in enumerate(idx):
+        for j in idx[a + 1:]:
+            x = np.hypot(*(c[i] - c[j])) / (re[i] + re[j])
+            if x < MERGE_SEPARATION:
+                pairs.append((x, int(i), int(j)))
+    return [(i, j) for _, i, j in sorted(pairs)]
+
+
+def _n_params(ctx: _Ctx, slots, shaped):
+    """Free parameters of these clumps (k per clump, 2 more for each shaped one)."""
+    return sum(ctx.k_clump + (2 if shaped[i] else 0) for i in slots)
+
+
+def _trial(ctx: _Ctx, u, active, move):
+    """(u0, active, shaped after, local slots, shaped in the solve) of a move: ("merge", i, j):
+    the pair as one clump in slot i (elliptical where shape moves are on; `merged_clump`), j
+    emptied; ("shape", i, -1 or -2): clump i elliptical, started at q = SHAPE_START_Q with
+    the major axis along β1 or β2 (started at q 0.9, PA 0, 4 of 13 trials ran 100 steps).
+    Only slot i's q, PA are solved (other shaped clumps hold theirs): every move's solve has
+    as many entries, one compiled program."""
+    kind, i, j = move
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    act, shaped = active.copy(), ctx.shaped.copy()
+    if kind == "merge":
+        beta, flux, re, q, pa = merged_clump(np.asarray(cl.center_arcsec)[[i, j]],
+                                             np.asarray(cl.flux)[[i, j]],
+                                             np.asarray(cl.re_arcsec)[[i, j]], ctx.opts.clump_n)
+        act[j] = 0.0
+        shaped[j] = False
+    else:
+        # two starts (j = −1, −2): major axis along β1 or β2, the round R_e as R_e√q
+        q, pa = SHAPE_START_Q, (0.0 if j == -1 else 0.5 * np.pi)
+        beta, flux, re = (np.asarray(cl.center_arcsec)[i], np.asarray(cl.flux)[i],
+                          float(cl.re_arcsec[i]) / np.sqrt(q))
+    if ctx.shape_index is None:
+        q, pa = 1.0, 0.0
+    else:
+        shaped[i] = True
+    u0 = _set_clump(ctx, u, i, beta, flux, re, q, pa)
+    solve_shaped = np.zeros(ctx.cap, bool)
+    solve_shaped[i] = shaped[i]
+    return u0, act, shaped, _local_slots(ctx, u0, act, i, beta), solve_shaped
+
+
+def _judge(ctx: _Ctx, move, lnl_now, lnl_trial):
+    """(criterion value, move accepted). A merge is accepted unless the criterion keeps the
+    pair: the same test as adding a clump, for the parameters the pair has beyond the one
+    clump (k − 2 when the merged clump is elliptical). A shape move is accepted when the
+    criterion accepts its 2 parameters (q, PA)."""
+    kind, i, j = move
+    if kind == "merge":
+        shaped_after = ctx.shaped.copy()
+        shaped_after[i] = ctx.shape_index is not None
+        k_extra = _n_params(ctx, (i, j), ctx.shaped) - _n_params(ctx, (i,), shaped_after)
+        value, keep_pair = _criterion(ctx.opts, lnl_now - lnl_trial, k_extra, ctx.n_pix)
+        return value, not keep_pair
+    return _criterion(ctx.opts, lnl_trial - lnl_now, 2, ctx.n_pix)
+
+
+def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
+    """Merge and shape moves after pruning (issue 18: through a lens, one elongated clump was
+    fitted as two round ones, each too small and with part of the flux).
+
+    Moves: each close pair (`_close_pairs`) tried as one clump (`merged_clump`), and, where
+    the renderer draws q and PA, each round clump tried elliptical. Up to n_starts moves are
+    solved at once (local solves from the fixed-capacity batch: one compiled program for all
+    moves, none per move); the accepted move (`_judge`) with the best criterion value is made
+    (merges first), the other accepted ones are tried again from the new state, a rejected
+    move is not tried again; until none is left. Each tried move is a step."""
+    tried = set()
+    while True:
+        moves = [("merge", i, j) for i, j in _close_pairs(ctx, u, active)]
+        if ctx.shape_index is not None:
+            moves += [("shape", int(i), s) for i in np.nonzero((active > 0) & ~ctx.shaped)[0]
+                      for s in (-1, -2)]
+        moves = [m for m in moves if m not in tried][:ctx.opts.n_starts]
+        if not moves:
+            return u, lnl, active, n_images
+        trials = [_trial(ctx, u, active, m) for m in moves]
+        us, lnls, oks, n = _fit_local(ctx, np.stack([t[0] for t in trials]), [t[3] for t in trials],
+                                      np.stack([t[1] for t in trials]), [t[4] for t in trials])
+        judged = [_judge(ctx, m, lnl, float(v)) for m, v in zip(moves, lnls)]
+        # a merge's criterion value is the pair's: the most negative is the best kept pair;
+        # best move: the merge the pair least justifies, then the shape most justified
+        order = sorted((b for b in range(len(moves)) if judged[b][1]),
+                       key=lambda b: (moves[b][0] != "merge",
+                                      -judged[b][0] if moves[b][0] == "merge" else judged[b][0]))
+        best = order[0] if order else -1
+        for b, m in enumerate(moves):
+            made = b == best
+            if made or not judged[b][1]:
+                # an accepted move not made is tried again from the new state
+                tried.add(m)
+            steps.append(dict(step=len(steps), action=m[0] if made else (
+                              f"defer_{m[0]}" if judged[b][1] else f"reject_{m[0]}"),
+                              slot=m[1], partner=m[2],
+                              n_clumps=int(trials[b][1].sum() if made else active.sum()),
+                              delta_lnL=float(lnls[b] - lnl), criterion=judged[b][0],
+                              accepted=bool(judged[b][1]), made=made,
+                              lnL=float(lnls[b] if made else lnl),
+                              chi2_dof=_chi2_dof(ctx, lnls[b] if made else lnl,
+                                                 trials[b][1].sum() if made else active.sum()),
+                              converged=bool(oks[b]), n_steps=int(n[b])))
+        if best >= 0:
+            m = moves[best]
+            u, lnl, active = us[best], float(lnls[best]), trials[best][1]
+            ctx.shaped = trials[best][2]
+            if m[0] == "merge":
+                n_images = n_images.copy()
+                n_images[m[1]] = max(n_images[m[1]], n_images[m[2]])
+                n_images[m[2]] = 0
+
+
 def _final(ctx: _Ctx, u, active, steps):
     """Refit from n_starts perturbed starts (the first unperturbed); best kept, spread kept.
 
@@ -530,7 +735,7 @@ def _uncertainty(ctx: _Ctx, u, active):
     Fisher matrix of those entries only (`capacity.fisher_of_rows`)."""
     x = ctx.param.physical_vector(jnp.asarray(u))
     kept = np.nonzero(active > 0)[0]
-    entries = np.concatenate([ctx.host_index, ctx.slot_index[kept].ravel()])
+    entries = _entries(ctx, kept)
     fisher = capacity.fisher_of_rows(ctx.model, ctx.data, ctx.param, jnp.asarray(u),
                                      jnp.asarray(entries), jnp.asarray(kept),
                                      jnp.asarray(active, float))
@@ -619,6 +824,8 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     u, lnl = _fit_host(ctx, u0, steps)
     u, lnl, active, n_images = _count(ctx, u, lnl, steps)
     lnl, active = _prune(ctx, u, lnl, active, steps)
+    if opts.merge:
+        u, lnl, active, n_images = _refine(ctx, u, lnl, active, n_images, steps)
     us, lnls, oks, b = _final(ctx, u, active, steps)
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
     state = masked_clumps(ctx.param.state(jnp.asarray(u)), active)

@@ -67,10 +67,12 @@ def run_auto_fit(prep, images, variances=None, *, out_dir=None, options=None):
 def scene_options(scene) -> AutoOptions:
     """The fit's options from the scene: its clumps' Sérsic index and its seed.
 
-    Clumps stay round through a lens too: fitting q and PA there (`AutoOptions.fit_shape`)
-    was tried on the SIS recovery scene (benchmarks/results/recovery_shape_lensed.md): an
-    elongated clump then absorbed its neighbours, 4 clumps kept instead of 6 and 2 of 6
-    recovered instead of 5 (round clumps split one elongated S/N 51 clump in two instead)."""
+    Clumps are counted round through a lens too: fitting q and PA for all of them
+    (`AutoOptions.fit_shape`) was tried on the SIS recovery scene
+    (benchmarks/results/recovery_shape_lensed.md): an elongated clump then absorbed its
+    neighbours, 4 clumps kept instead of 6 and 2 of 6 recovered instead of 5. After the
+    counting, the merge and shape moves (`AutoOptions.merge`, on) make a clump elliptical
+    only where the criterion asks for it (benchmarks/results/recovery_merge.md)."""
     cl = getattr(scene.source, "clumps", None)
     n = getattr(cl, "sersic_n", AutoOptions.clump_n) if cl is not None else AutoOptions.clump_n
     return AutoOptions(clump_n=float(n), seed=int(scene.seed))

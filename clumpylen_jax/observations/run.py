@@ -74,9 +74,12 @@ def auto_starts(observations, frame, scene) -> dict:
     opts = scene.fit
     if opts.max_clumps == 0:
         return None
-    # no Fisher errors there: only the optimum is used, the joint fit below gives the errors
+    # no Fisher errors there: only the optimum is used, the joint fit below gives the errors;
+    # no merge or shape moves: the joint fit starts round clumps (q, PA not passed on), and
+    # the moves are measured on the simulated recovery scenes only (issue 18)
     wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
-                  clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps, errors=False)
+                  clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps, errors=False,
+                  merge=False)
     names = {f.name for f in dataclasses.fields(AutoOptions)}
     auto = fit_without_truth(make_model_factory(observations, frame, opts),
                              # with a noise model, σ² from the data (rms² + max(d, 0)/t): its
