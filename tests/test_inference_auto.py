@@ -279,3 +279,32 @@ def test_source_shape_undoes_the_lens_stretch():
     rot = np.array([[np.cos(phi), np.sin(phi)], [-np.sin(phi), np.cos(phi)]])
     q, pa = source_shape(0.5, 0.3, rot)
     assert q == pytest.approx(0.5) and np.cos(2 * (pa - (0.3 - phi))) == pytest.approx(1.0)
+
+
+def test_without_errors_the_same_clumps_and_no_table():
+    """AutoOptions(errors=False) (what `clumpylen fit` asks for): the same optimum, bit for
+    bit, as errors=True, with no Fisher matrix and no table; a tiny scene (21², one round
+    Gaussian clump, no exact pixels, no PSF) so that both fits compile quickly."""
+    n, pix = 21, 0.03
+    field = ((-0.5 * n * pix, 0.5 * n * pix),) * 2
+    acc = dataclasses.replace(TOY_ACCURACY, clump_pixels="round_gaussian", psf_oversampling=1)
+
+    def mk(src):     # no PSF: nothing to convolve
+        return build_model(src, toy_bands(1), field_arcsec=field, accuracy=acc)
+
+    host = Sersic(jnp.array([20.0]), jnp.asarray(0.12), jnp.asarray(1.0), jnp.asarray(0.8),
+                  jnp.asarray(0.4), jnp.zeros(2))
+    clump = Clumps(jnp.array([[0.09, -0.06]]), jnp.array([[6.0]]), jnp.array([0.03]),
+                   jnp.full(1, 0.5), jnp.ones(1), jnp.zeros(1))
+    truth = Source(bulge=host, clumps=clump)
+    noisy, _, var = mk(truth).observe(truth, jax.random.key(3))
+    opts = AutoOptions(max_clumps=1, n_starts=1)
+    full = fit_without_truth(mk, [np.asarray(noisy[0])], [np.asarray(var[0])], options=opts)
+    bare = fit_without_truth(mk, [np.asarray(noisy[0])], [np.asarray(var[0])],
+                             options=dataclasses.replace(opts, errors=False))
+    assert len(full.table) == 1 and full.uncertainty is not None
+    assert bare.table is None and bare.uncertainty is None
+    assert np.array_equal(bare.u, full.u) and np.array_equal(bare.active, full.active)
+    assert bare.log_likelihood == full.log_likelihood
+    same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(a, b)), bare.state, full.state)
+    assert all(jax.tree_util.tree_leaves(same))
