@@ -35,22 +35,53 @@ CLUMP_RADIUS_PIX = 2.0
 
 
 def compile_listener():
-    """(totals dict, register()): seconds spent in JAX tracing, lowering and XLA compile."""
-    totals = {"trace_s": 0.0, "lower_s": 0.0, "xla_compile_s": 0.0, "n_compiles": 0}
+    """(totals dict, register()): seconds spent in JAX tracing, lowering and XLA compile;
+    totals["by_program"] holds XLA compile seconds per program name and totals["by_caller"]
+    [seconds, count] per innermost clumpylen_jax frame that asked for it (which code compiles)."""
+    totals = {"trace_s": 0.0, "lower_s": 0.0, "xla_compile_s": 0.0, "n_compiles": 0,
+              "by_program": {}, "by_caller": {}}
     names = {"/jax/core/compile/jaxpr_trace_duration": "trace_s",
              "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
              "/jax/core/compile/backend_compile_duration": "xla_compile_s"}
 
-    def on_event(event, duration_s, **_):
+    def on_event(event, duration_s, fun_name="?", **_):
         key = names.get(event)
         if key:
             totals[key] += duration_s
             totals["n_compiles"] += key == "xla_compile_s"
+            if key == "xla_compile_s":
+                by = totals["by_program"]
+                by[fun_name] = by.get(fun_name, 0.0) + duration_s
+                caller = totals["by_caller"].setdefault(clumpylen_caller(), [0.0, 0])
+                caller[0] += duration_s
+                caller[1] += 1
 
     def register():
         import jax
         jax.monitoring.register_event_duration_secs_listener(on_event)
     return totals, register
+
+
+def clumpylen_caller() -> str:
+    """file:line function of the innermost clumpylen_jax frame on the stack."""
+    import traceback
+    for fr in reversed(traceback.extract_stack()):
+        if "clumpylen_jax" in fr.filename:
+            return f"{fr.filename.split('clumpylen_jax/')[-1]}:{fr.lineno} {fr.name}"
+    return "?"
+
+
+def top_callers(by_caller: dict, n: int = 25) -> dict:
+    ranked = sorted(by_caller.items(), key=lambda kv: -kv[1][0])
+    return {k: [round(v[0], 1), v[1]] for k, v in ranked[:n]}
+
+
+def top_programs(by_program: dict, n: int = 12) -> dict:
+    """The n programs with the most XLA compile seconds, the rest summed as "(others)"."""
+    ranked = sorted(by_program.items(), key=lambda kv: -kv[1])
+    top = {k: round(v, 1) for k, v in ranked[:n]}
+    top[f"(others: {max(len(ranked) - n, 0)})"] = round(sum(v for _, v in ranked[n:]), 1)
+    return top
 
 
 def max_chi_at_clumps(out: Path) -> dict:
@@ -91,7 +122,9 @@ def run(scene: str, cache: str, out_dir: str | None) -> dict:
     return {"scene": scene, "cache": cache, "wall_s": round(wall, 1), "cpu_s": round(cpu, 1),
             "compile_s": round(compile_s, 1), "run_s": round(wall - compile_s, 1),
             "compile_split_s": {k: round(v, 1) if isinstance(v, float) else v
-                                for k, v in totals.items()},
+                                for k, v in totals.items() if not k.startswith("by_")},
+            "xla_compile_s_by_program": top_programs(totals["by_program"]),
+            "xla_compile_s_count_by_caller": top_callers(totals["by_caller"]),
             "n_clumps": summary["n_clumps"], "n_free": summary["n_free"],
             "chi2_per_dof": summary["chi2_per_dof"], "max_abs_chi": chi,
             "success": summary["success"], "timings_s": summary["timings_s"],
@@ -104,6 +137,7 @@ def main():
     ap.add_argument("--scene", choices=["s1063", "rxj1131", "both"], default="s1063")
     ap.add_argument("--cache", choices=["cold", "warm"], default="cold")
     ap.add_argument("--out", default=None, help="keep the fit's files here")
+    ap.add_argument("--tag", default="", help="results file suffix (e.g. _before)")
     args = ap.parse_args()
     if not DATA.is_dir():
         raise SystemExit(f"data not found: {DATA}")
@@ -118,7 +152,7 @@ def main():
     res = HERE / "results"
     res.mkdir(exist_ok=True)
     for r in results:
-        suffix = "" if r["scene"] == "s1063" else f"_{r['scene']}"
+        suffix = ("" if r["scene"] == "s1063" else f"_{r['scene']}") + args.tag
         (res / f"fit_observations{suffix}.json").write_text(json.dumps(r, indent=1) + "\n")
 
 

@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import clumpylen_jax
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.inference import auto
 from clumpylen_jax.inference.auto import AutoOptions, fit_without_truth
@@ -355,3 +354,32 @@ def test_merge_move_joins_a_split_elongated_clump_not_two_clumps():
     _, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
     assert active.sum() == 2
     assert "reject_merge" in [s["action"] for s in steps], steps
+
+
+def test_without_errors_the_same_clumps_and_no_table():
+    """AutoOptions(errors=False) (what `clumpylen fit` asks for): the same optimum, bit for
+    bit, as errors=True, with no Fisher matrix and no table. A tiny scene drawn in numpy (an
+    exponential host and a Gaussian knot, 21², no PSF, no exact pixels) so that little is
+    compiled besides the fits' programs."""
+    n, pix = 21, 0.03
+    field = ((-0.5 * n * pix, 0.5 * n * pix),) * 2
+    acc = dataclasses.replace(TOY_ACCURACY, clump_pixels="round_gaussian", psf_oversampling=1)
+
+    def mk(src):
+        return build_model(src, toy_bands(1), field_arcsec=field, accuracy=acc)
+
+    yy, xx = np.mgrid[:n, :n] - (n - 1) / 2
+    host = 2.0 * np.exp(-np.hypot(xx / 4.0, yy / 3.0))
+    knot = 1.5 * np.exp(-0.5 * ((xx - 3) ** 2 + (yy + 2) ** 2))
+    sigma = 0.05
+    data = [host + knot + np.random.default_rng(3).normal(0.0, sigma, (n, n))]
+    var = [np.full((n, n), sigma**2)]
+    opts = AutoOptions(max_clumps=1, n_starts=1)
+    full = fit_without_truth(mk, data, var, options=opts)
+    bare = fit_without_truth(mk, data, var, options=dataclasses.replace(opts, errors=False))
+    assert len(full.table) == 1 and full.uncertainty is not None
+    assert bare.table is None and bare.uncertainty is None
+    assert np.array_equal(bare.u, full.u) and np.array_equal(bare.active, full.active)
+    assert bare.log_likelihood == full.log_likelihood
+    same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(a, b)), bare.state, full.state)
+    assert all(jax.tree_util.tree_leaves(same))
