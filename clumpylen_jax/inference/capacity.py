@@ -68,21 +68,12 @@ def _per_start(max_steps, n):
     return jnp.broadcast_to(jnp.asarray(max_steps, jnp.int32), (n,))
 
 
-def _dark_host(source: Source) -> Source:
-    """The source with its host components' fluxes 0 (only its clumps shine)."""
-    dark = lambda flux: jnp.zeros_like(flux)  # noqa: E731
-    if source.bulge is not None:
-        source = eqx.tree_at(lambda s: s.bulge.flux, source, dark(source.bulge.flux))
-    if source.disk is not None:
-        source = eqx.tree_at(lambda s: s.disk.sersic.flux, source, dark(source.disk.sersic.flux))
-    return source
-
-
 def held_light(model, state, slots, active):
     """Band images (counts/s, no sky) of the active clumps outside the rows `slots`: what a
-    fit that moves only those rows holds fixed (rendered once per solve, not per step)."""
+    fit that moves only those rows holds fixed (rendered once per solve, not per step). The
+    host is left out of the source, not drawn at zero flux."""
     others = masked_clumps(state, active.at[slots].set(0.0)).render_source()
-    return jax.lax.stop_gradient(model.band_images(_dark_host(others)))
+    return jax.lax.stop_gradient(model.band_images(Source(clumps=others.clumps)))
 
 
 def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host):
