@@ -431,19 +431,13 @@ def _chi2_dof(ctx: _Ctx, lnl, n_active):
 
 def _seed_slot(ctx: _Ctx, u, slot: int, cand: seeding.Candidates, i: int):
     """u with slot `slot` set to candidate i's source-plane values."""
-    st = ctx.param.state(jnp.asarray(u))
     re_lo, re_hi = ctx.re_bounds
     flux = np.asarray(cand.flux[i], float)
     flux = np.clip(flux, 1e-3 * max(flux.max(), 1e-12), None)
+    # a seed starts well inside the size bounds (a move may start up to 0.9 re_hi)
     re = float(np.clip(cand.re_arcsec[i], 3 * re_lo, 0.5 * re_hi))
-    cl = st.source.clumps
     q, pa = (float(cand.q[i]), float(cand.pa_rad[i])) if ctx.opts.fit_shape else (1.0, 0.0)
-    cl = eqx.tree_at(lambda c: (c.center_arcsec, c.flux, c.re_arcsec, c.q, c.pa_rad), cl,
-                     (cl.center_arcsec.at[slot].set(jnp.asarray(cand.beta_arcsec[i])),
-                      cl.flux.at[slot].set(jnp.asarray(flux)), cl.re_arcsec.at[slot].set(re),
-                      cl.q.at[slot].set(q), cl.pa_rad.at[slot].set(pa)))
-    st = eqx.tree_at(lambda s: s.source.clumps, st, cl)
-    return np.asarray(ctx.param.initial(st))
+    return _set_clump(ctx, u, slot, cand.beta_arcsec[i], flux, re, q, pa)
 
 
 def _candidates(ctx: _Ctx, u, active):
