@@ -106,8 +106,7 @@ def test_start_size_does_not_change_the_optimum():
     big = Clumps(jnp.array([[0.03, -0.02]]), jnp.array([[30.0]]), jnp.array([5 * PIX]),
                  jnp.full(1, 0.5), jnp.ones(1), jnp.zeros(1))
     data, var = _observe(Source(bulge=HOST, clumps=big), 2)
-    # merge off: no q, PA in the parametrization, which `_fit` would free (round clump here)
-    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX, merge=False).validate()
+    opts = AutoOptions(max_clumps=1, n_starts=2, re_max_arcsec=10 * PIX).validate()
     ctx, u0 = auto._setup(make_model, data, var, None, None, None, opts)
     u_host, _ = auto._fit_host(ctx, u0, [])
 
@@ -115,7 +114,7 @@ def test_start_size_does_not_change_the_optimum():
         return Candidates(np.array([[0.0, 0.0]]), np.array([[20.0]]), np.array([re]), np.ones(1),
                           np.zeros(1), np.ones(1), np.ones(1, int), np.zeros((1, 2), int))
     starts = np.stack([auto._seed_slot(ctx, u_host, 0, cand(r), 0) for r in (1 * PIX, 5 * PIX)])
-    us, lnl, ok, _ = auto._fit(ctx, starts, np.ones((2, 1)))
+    us, lnl, ok, _ = auto._fit_local(ctx, starts, [[0], [0]], np.ones((2, 1)))
     x = [np.asarray(ctx.param.state(jnp.asarray(u)).source.clumps.re_arcsec)[0] for u in us]
     assert np.all(ok)
     assert abs(x[0] / (5 * PIX) - 1) < 0.15

@@ -355,24 +355,6 @@ def _step_limits(ctx: _Ctx, m: int):
                        jnp.int32)
 
 
-def _fit(ctx: _Ctx, u0s, actives):
-    """Solve every free entry from each start (padded to the compiled batch n_starts: the
-    padding takes no step, `_step_limits`). With shape moves possible (`_shape_moves`) that
-    includes every slot's q and PA: the steps use `_fit_local`, which frees them per slot."""
-    s = ctx.opts.n_starts
-    u0s, actives = np.asarray(u0s), np.asarray(actives, float)
-    m = u0s.shape[0]
-    pad = np.arange(s) % m
-    t0 = time.perf_counter()
-    us, lnl, ok, steps = capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0s[pad]),
-                                              jnp.asarray(actives[pad]), TOL,
-                                              _step_limits(ctx, m))
-    lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
-    LOG.info("fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m, int(actives[0].sum()),
-             time.perf_counter() - t0, np.round(lnl[:m], 1), np.asarray(steps)[:m])
-    return np.asarray(us)[:m], lnl[:m], np.asarray(ok)[:m], np.asarray(steps)[:m]
-
-
 def _entries(ctx: _Ctx, slots, shaped=None):
     """Entries of u a local solve frees: host and background, then each slot's (flux, β, R_e,
     and its q, PA where shaped[slot], default ctx.shaped)."""
