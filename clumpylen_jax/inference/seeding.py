@@ -98,10 +98,15 @@ def pixel_jacobians(scene_model, k: int, lens):
     return b1, b2, jac
 
 
+def _abs_det(A):
+    """|det A| of Jacobians [..., 2, 2] (1/|μ|)."""
+    return np.abs(A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0])
+
+
 def pixel_betas(scene_model, k: int, lens):
     """β1, β2 (arcsec) of band k's detector pixel centres and |det A| there (1 unlensed)."""
     b1, b2, A = pixel_jacobians(scene_model, k, lens)
-    return b1, b2, np.abs(A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0])
+    return b1, b2, _abs_det(A)
 
 
 def source_shape(q_img: float, pa_img: float, jacobian):
@@ -239,7 +244,7 @@ def find_candidates(scene_model, residuals, variances, masks, *, lens=None, psf_
     sm = matched_filter(snr, max(float(psf_sigma_pix[ref]), 0.7))
     peaks = find_peaks_snr(sm, threshold_snr, 4 * max_candidates)
     b1, b2, jac = pixel_jacobians(scene_model, ref, lens)
-    det = np.abs(jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0])
+    det = _abs_det(jac)
     rows = []
     for r, c, v in peaks:
         r, c = int(r), int(c)
