@@ -652,15 +652,14 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
             if made or not judged[b][1]:
                 # an accepted move not made is tried again from the new state
                 tried.add(m)
+            # the state after this step: the move's where it is made, else the current one
+            act_after, lnl_after = (trials[b][1], lnls[b]) if made else (active, lnl)
             steps.append(dict(step=len(steps), action=m[0] if made else (
                               f"defer_{m[0]}" if judged[b][1] else f"reject_{m[0]}"),
-                              slot=m[1], partner=m[2],
-                              n_clumps=int(trials[b][1].sum() if made else active.sum()),
+                              slot=m[1], partner=m[2], n_clumps=int(act_after.sum()),
                               delta_lnL=float(lnls[b] - lnl), criterion=judged[b][0],
-                              accepted=bool(judged[b][1]), made=made,
-                              lnL=float(lnls[b] if made else lnl),
-                              chi2_dof=_chi2_dof(ctx, lnls[b] if made else lnl,
-                                                 trials[b][1].sum() if made else active.sum()),
+                              accepted=bool(judged[b][1]), made=made, lnL=float(lnl_after),
+                              chi2_dof=_chi2_dof(ctx, lnl_after, act_after.sum()),
                               converged=bool(oks[b]), n_steps=int(n[b])))
         if best >= 0:
             m = moves[best]
