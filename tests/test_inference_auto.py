@@ -337,7 +337,7 @@ def test_merge_move_joins_a_split_elongated_clump_not_two_clumps():
     ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=elong), 3,
                                     [[-0.05, 0.05], [0.05, 0.05]], 0.04)
     steps = []
-    u, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
+    u, _, active, _, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
     assert "merge" in [s["action"] for s in steps], steps
     assert active.sum() == 1
     cl = ctx.param.state(jnp.asarray(u)).source.clumps
@@ -351,9 +351,45 @@ def test_merge_move_joins_a_split_elongated_clump_not_two_clumps():
     ctx, u, lnl, active = _pair_fit(Source(bulge=HOST, clumps=two), 4,
                                     [[-0.07, 0.055], [0.05, 0.045]], 0.02)
     steps = []
-    _, _, active, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
+    _, _, active, _, _ = auto._refine(ctx, u, lnl, active, np.ones(3, int), steps)
     assert active.sum() == 2
     assert "reject_merge" in [s["action"] for s in steps], steps
+
+
+def test_final_shape_starts_round_clumps_from_their_shape_trials():
+    """AutoOptions.final_shape: before the final refit every kept round clump takes the R_e,
+    q and PA of its best shape trial (q kept inside its bounds, so that it can move), one
+    with no trial keeps its values, an inactive slot is untouched, and every kept clump's q
+    and PA become entries of the final solve. No fit: any image sets the context up."""
+    img = _blobs(np.array([[10, 12], [25, 30]]), [5.0, 3.0]) + 0.5
+    data, var = [img], [np.full(img.shape, 0.01)]
+    opts = AutoOptions(max_clumps=4, n_starts=2, re_max_arcsec=4 * PIX).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    assert ctx.shape_index is not None          # the Sérsic renderer draws q and PA
+    for slot, c in enumerate(CENTERS):
+        u = auto._set_clump(ctx, u, slot, c, [3.0], 0.03)
+    active = np.array([1.0, 1.0, 1.0, 0.0])
+    ctx.shaped = np.array([False, False, True, False])
+    before = ctx.param.state(jnp.asarray(u)).source.clumps
+    u2 = auto._shaped_start(ctx, u, active, {0: (12.0, 0.05, 0.55, 1.2), 3: (5.0, 0.02, 0.5, 0.1),
+                                             2: (1.0, 0.02, 1.0, 0.0)})
+    cl = ctx.param.state(jnp.asarray(u2)).source.clumps
+    assert float(cl.re_arcsec[0]) == pytest.approx(0.05) and float(cl.q[0]) == pytest.approx(0.55)
+    assert float(cl.pa_rad[0]) == pytest.approx(1.2)
+    assert np.allclose(cl.center_arcsec[0], before.center_arcsec[0])
+    assert np.allclose(cl.flux[0], before.flux[0])
+    for i in (1, 2, 3):     # no trial; already shaped (its trial ignored); inactive
+        for f in ("re_arcsec", "q", "pa_rad", "center_arcsec", "flux"):
+            assert np.allclose(getattr(cl, f)[i], getattr(before, f)[i]), (i, f)
+    assert ctx.shaped.tolist() == [True, True, True, False]
+    kept = auto._entries(ctx, [0, 1, 2])
+    assert set(ctx.shape_index[:3].ravel()) <= set(kept.tolist())
+    # a trial that went back to round starts inside the bound
+    ctx.shaped[:] = False
+    u3 = auto._shaped_start(ctx, u, active, {1: (0.5, 0.03, 0.9999999, 0.7)})
+    q1 = float(ctx.param.state(jnp.asarray(u3)).source.clumps.q[1])
+    assert q1 == pytest.approx(auto.CLUMP_Q_RANGE[1] - 0.01)
+    assert np.all(np.isfinite(u3))
 
 
 def test_without_errors_the_same_clumps_and_no_table():

@@ -92,6 +92,12 @@ class AutoOptions:
     merge: after pruning, the merge and shape moves (`_refine`): close pairs tried as one
         clump, round clumps tried elliptical (where the renderer draws q and PA: a lensed
         fit, or clump_pixels "sersic"), each kept by the criterion.
+    final_shape: where shape moves are made (merge on, a renderer that draws q and PA), the
+        final refit frees every kept clump's q and PA, a round one started from its best
+        shape trial: R_e (of the major axis), q and PA are then reported with errors
+        marginalised over the shape. A round clump's R_e error holds the shape fixed: for
+        elliptical clumps seen through a lens it was several times too small
+        (benchmarks/results/recovery_final_shape.md).
     """
 
     max_clumps: int = 20
@@ -106,6 +112,7 @@ class AutoOptions:
     fit_shape: bool = False
     errors: bool = True
     merge: bool = True
+    final_shape: bool = True
 
     def validate(self) -> "AutoOptions":
         require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
@@ -123,6 +130,8 @@ class AutoOptions:
         require(isinstance(self.max_steps, (int, np.integer)) and self.max_steps >= 1,
                 "fit.max_steps", self.max_steps, "an integer ≥ 1")
         require(isinstance(self.merge, (bool, np.bool_)), "fit.merge", self.merge, "true or false")
+        require(isinstance(self.final_shape, (bool, np.bool_)), "fit.final_shape",
+                self.final_shape, "true or false")
         return self
 
     @property
@@ -627,8 +636,12 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
     solved at once (local solves from the fixed-capacity batch: one compiled program for all
     moves, none per move); the accepted move (`_judge`) with the best criterion value is made
     (merges first), the other accepted ones are tried again from the new state, a rejected
-    move is not tried again; until none is left. Each tried move is a step."""
+    move is not tried again; until none is left. Each tried move is a step.
+
+    Returns (u, ln L, active, n_images, shape_trials): shape_trials {slot: (Δln L, R_e, q,
+    PA)}, each slot's best shape trial, made or not (the final refit's start for its shape)."""
     tried = set()
+    shape_trials = {}
     while True:
         moves = [("merge", i, j) for i, j in _close_pairs(ctx, u, active)]
         if ctx.shape_index is not None:
@@ -636,11 +649,16 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
                       for s in (-1, -2)]
         moves = [m for m in moves if m not in tried][:ctx.opts.n_starts]
         if not moves:
-            return u, lnl, active, n_images
+            return u, lnl, active, n_images, shape_trials
         trials = [_trial(ctx, u, active, m) for m in moves]
         us, lnls, oks, n = _fit_local(ctx, np.stack([t[0] for t in trials]), [t[3] for t in trials],
                                       np.stack([t[1] for t in trials]), [t[4] for t in trials])
         judged = [_judge(ctx, m, lnl, float(v)) for m, v in zip(moves, lnls)]
+        for b, (kind, i, _) in enumerate(moves):
+            if kind == "shape" and lnls[b] - lnl > shape_trials.get(i, (-np.inf,))[0]:
+                cl = ctx.param.state(jnp.asarray(us[b])).source.clumps
+                shape_trials[i] = (float(lnls[b] - lnl), float(cl.re_arcsec[i]),
+                                   float(cl.q[i]), float(cl.pa_rad[i]))
         # a merge's criterion value is the pair's: the most negative is the best kept pair;
         # best move: the merge the pair least justifies, then the shape most justified
         order = sorted((b for b in range(len(moves)) if judged[b][1]),
@@ -669,6 +687,23 @@ def _refine(ctx: _Ctx, u, lnl, active, n_images, steps):
                 n_images = n_images.copy()
                 n_images[m[1]] = max(n_images[m[1]], n_images[m[2]])
                 n_images[m[2]] = 0
+
+
+def _shaped_start(ctx: _Ctx, u, active, shape_trials):
+    """u with every kept round clump given the R_e, q and PA of its best shape trial (those
+    with none keep theirs), and ctx.shaped set for every kept clump: the final refit then
+    frees all their shapes (`AutoOptions.final_shape`). A round start would not do: at q = 1
+    the PA has no gradient and q sits on its bound."""
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    centres, fluxes = np.asarray(cl.center_arcsec), np.asarray(cl.flux)
+    for i in np.nonzero((active > 0) & ~ctx.shaped)[0]:
+        if int(i) in shape_trials:
+            _, re, q, pa = shape_trials[int(i)]
+            # a trial that went back to round starts just inside the bound, free to move
+            q = float(np.clip(q, CLUMP_Q_RANGE[0] + 0.01, CLUMP_Q_RANGE[1] - 0.01))
+            u = _set_clump(ctx, u, int(i), centres[i], fluxes[i], re, q, pa)
+    ctx.shaped = ctx.shaped | (active > 0)
+    return u
 
 
 def _final(ctx: _Ctx, u, active, steps):
@@ -800,7 +835,9 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     u, lnl, active, n_images = _count(ctx, u, lnl, steps)
     lnl, active = _prune(ctx, u, lnl, active, steps)
     if opts.merge:
-        u, lnl, active, n_images = _refine(ctx, u, lnl, active, n_images, steps)
+        u, lnl, active, n_images, shape_trials = _refine(ctx, u, lnl, active, n_images, steps)
+        if opts.final_shape and ctx.shape_index is not None:
+            u = _shaped_start(ctx, u, active, shape_trials)
     us, lnls, oks, b = _final(ctx, u, active, steps)
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
     state = masked_clumps(ctx.param.state(jnp.asarray(u)), active)
