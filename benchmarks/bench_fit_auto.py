@@ -12,7 +12,8 @@ PSF): the compile time and the warm time per Levenberg–Marquardt step of
 then a whole `fit_without_truth` run on a mock with 6 clumps, recording the XLA compiles
 (jax.monitoring) of each counting step and of the final refit: every adding step after the
 first reuses the compiled code (0 compiles), so compile time does not grow with the number
-of steps; the final refit compiles once for its number of kept clumps.
+of steps; the final refit reuses it too (`capacity.solve_local_batch` takes any number of
+rows moved, up to the capacity).
 
 The fit's model draws its round n = 0.5 clumps as `fit_without_truth`'s callers build it
 (`auto.fit_clump_pixels`: the exact separable renderer, "round_gaussian"); --clump-pixels
