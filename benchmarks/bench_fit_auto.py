@@ -12,7 +12,8 @@ PSF): the compile time and the warm time per Levenberg–Marquardt step of
 then a whole `fit_without_truth` run on a mock with 6 clumps, recording the XLA compiles
 (jax.monitoring) of each counting step and of the final refit: every adding step after the
 first reuses the compiled code (0 compiles), so compile time does not grow with the number
-of steps; the final refit compiles once for its number of kept clumps.
+of steps; the final refit reuses it too (`capacity.solve_local_batch` takes any number of
+rows moved, up to the capacity).
 
 The fit's model draws its round n = 0.5 clumps as `fit_without_truth`'s callers build it
 (`auto.fit_clump_pixels`: the exact separable renderer, "round_gaussian"); --clump-pixels
@@ -91,14 +92,15 @@ def capacity_costs(cap, data, var, steps, joint=True):
     ctx, u0 = auto._setup(make_model, data, var, None, None, None, opts)
     active = np.zeros((1, cap))
     active[0, :3] = 1.0
-    idx = np.concatenate([ctx.host_index, ctx.slot_index[:auto.LOCAL_SLOTS].ravel()])[None]
-    row = {"capacity": cap, "free_local": int(idx.size), "free_joint": int(ctx.param.size)}
+    idx, rows = auto._solve_layout(ctx, list(range(auto.LOCAL_SLOTS)))
+    row = {"capacity": cap, "free_local": int(np.sum(idx < ctx.param.size)),
+           "free_joint": int(ctx.param.size)}
 
     def local(max_steps):
         return capacity.solve_local_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),
-                                          jnp.asarray(idx), jnp.arange(auto.LOCAL_SLOTS)[None],
+                                          jnp.asarray(idx[None]), jnp.asarray(rows[None]),
                                           jnp.asarray(active), 0.0, max_steps,
-                                          int(ctx.host_index.size))
+                                          int(ctx.host_index.size), auto.LOCAL_SLOTS)
 
     def joint_fit(max_steps):
         return capacity.solve_batch(ctx.model, ctx.data, ctx.param, jnp.asarray(u0[None]),

@@ -206,7 +206,9 @@ def test_lm_with_a_traced_zero_step_limit_takes_no_step():
 
 def _rows_case():
     """Four round-Gaussian clumps (no host: its exact pixels would take long to compile),
-    slot 2 inactive, rows 1 and 2 moved: (model, data, param, u, active, slots, idx, blocks)."""
+    slot 2 inactive, rows 1 and 2 moved, in `capacity.solve_local_batch`'s layout (the
+    background, then per row its flux, β, R_e; two padding rows, row 4, entries u.size):
+    (model, data, param, u, active, slots, idx)."""
     from clumpylen_jax.inference.likelihood import make_data
     from clumpylen_jax.inference.params import make_state, parametrize
     cl = Clumps(jnp.asarray(np.r_[CENTERS, [[0.0, -0.3]]]), jnp.array([[4.0], [3.0], [2.0], [1.0]]),
@@ -218,46 +220,78 @@ def _rows_case():
     param = parametrize(make_state(src, 1), {
         "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
         "background": True})
-    # u: flux [4], β [4, 2], R_e [4], background: the background, then rows 1 and 2
-    idx = jnp.asarray(np.r_[param.size - 1, 1, 2, 4 + np.arange(2, 6), 13, 14])
+    # u: flux [4], β [4, 2], R_e [4], background
+    idx = np.r_[param.size - 1, np.ravel([[i, 4 + 2 * i, 5 + 2 * i, 12 + i] for i in (1, 2)]),
+                np.full(8, param.size)]
     return (model, data, param, param.initial() + 0.01, jnp.array([1.0, 1.0, 0.0, 1.0]),
-            jnp.array([1, 2]), idx, (np.arange(1), np.arange(1, idx.size)))
+            jnp.array([1, 2, 4, 4]), jnp.asarray(idx))
 
 
-def _rows_residuals(model, data, param, u, active, slots, idx):
-    """(every slot rendered with the mask, the rows moved + the others' held light)."""
+def _local_normal_matches(model, data, param, u, active, slots, idx, n_host, chunks):
+    """`capacity._local_normal` against one blockwise Jacobian of every slot with the mask."""
     from clumpylen_jax.inference import capacity
-    from clumpylen_jax.inference.lm import held_residuals
-    to_u = lambda v: u.at[idx].set(v)  # noqa: E731
-    return (held_residuals(model, data, param, to_u=to_u, active=active),
-            held_residuals(model, data, param, to_u=to_u, active=active, slots=slots,
-                           fixed=capacity.held_light(model, param.state(u), slots, active)))
+    from clumpylen_jax.inference.lm import blockwise, held_residuals
+    from clumpylen_jax.inference.params import part_blocks
+    r0, J0 = (np.asarray(a) for a in jax.jit(blockwise(
+        held_residuals(model, data, param, active=active), part_blocks(param)))(u))
+    real = np.asarray(idx[idx < param.size])
+    J = J0[:, real]
+    held = capacity.held_light(model, param.state(u), slots, active)
+    v = u.at[idx].get(mode="fill", fill_value=0.0)
+    for chunk in chunks:
+        normal = capacity._local_normal(model, data, param, u, idx, slots, active, held, n_host,
+                                        chunk)
+        r, H, g = (np.asarray(a) for a in jax.jit(normal)(v))
+        n = real.size
+        assert np.abs(r - r0).max() <= 1e-12 * np.abs(r0).max()
+        assert np.abs(H[:n, :n] - J.T @ J).max() <= 1e-12 * np.abs(J.T @ J).max()
+        assert np.abs(g[:n] - J.T @ r0).max() <= 1e-12 * np.abs(J.T @ r0).max()
+        assert not np.any(H[n:]) and not np.any(H[:, n:]) and not np.any(g[n:])
 
 
-def test_rendering_only_the_moved_rows_is_the_full_model():
-    """capacity: a local solve draws only the clump rows it moves plus the held light of the
-    other active clumps (`held_light`); for a model whose clumps add linearly (round
-    Gaussians) its residuals are those of every slot rendered with the active mask."""
-    model, data, param, u, active, slots, idx, _ = _rows_case()
+def test_local_normal_equations_are_the_full_models():
+    """capacity: a local solve draws only the clump rows it moves, a chunk of rows at a
+    time, plus the held light of the other active clumps (`held_light`), and forms JᵀJ and
+    Jᵀr by blocks; for a model whose clumps add linearly (round Gaussians) its residuals
+    and normal equations are those of every slot rendered with the active mask, with one
+    or two rows per chunk, and the padding columns are zero."""
+    model, data, param, u, active, slots, idx = _rows_case()
     assert model.clumps.any_count
-    full, rows = _rows_residuals(model, data, param, u, active, slots, idx)
-    r0, r1 = (np.asarray(jax.jit(lambda v, f=f: f(v, 0))(u[idx])) for f in (full, rows))
-    assert np.abs(r1 - r0).max() <= 1e-12 * np.abs(r0).max()
+    _local_normal_matches(model, data, param, u, active, slots, idx, 1, (1, 2))
 
 
 @pytest.mark.slow
-def test_rows_jacobian_and_fisher_are_the_full_models():
-    """The same (test above) for the blockwise Jacobian of a local solve, and
-    `capacity.fisher_of_rows` (kept rows only) is the kept block of the Fisher matrix of
+def test_local_normal_equations_with_a_host():
+    """The same (test above) with a bulge and a disk: the host drawn alone, its columns
+    with every clump's light held."""
+    from clumpylen_jax.inference.likelihood import make_data
+    from clumpylen_jax.inference.params import make_state, parametrize
+    from clumpylen_jax.source import Disk
+    src = Source(bulge=HOST, disk=Disk(dataclasses.replace(HOST, re_arcsec=jnp.asarray(0.4)),
+                                       jnp.asarray(0.5)),
+                 clumps=dataclasses.replace(CLUMPS, q=jnp.ones(3)))
+    model = build_model(src, BANDS, field_arcsec=FIELD,
+                        accuracy=dataclasses.replace(ACC, clump_pixels="round_gaussian"))
+    img = np.asarray(eqx.filter_jit(lambda m, s: m.noiseless(s))(model, src)[0])
+    data = make_data(model, [img * 1.1], [np.ones_like(img)], kind="gaussian")
+    param = parametrize(make_state(src, 1), {
+        "bulge.flux": True, "bulge.re_arcsec": True, "disk.sersic.flux": True,
+        "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
+        "background": True})
+    host, per_slot, _ = auto._index_tables(param, 3)
+    slots = np.array([2, 0, 3, 3])          # slot 1 held (active), one padding row
+    idx = np.r_[host, per_slot[2], per_slot[0], np.full(2 * per_slot.shape[1], param.size)]
+    _local_normal_matches(model, data, param, param.initial() + 0.01, jnp.ones(3),
+                          jnp.asarray(slots), jnp.asarray(idx), host.size, (1,))
+
+
+@pytest.mark.slow
+def test_rows_fisher_is_the_full_models():
+    """`capacity.fisher_of_rows` (kept rows only) is the kept block of the Fisher matrix of
     every slot with the active mask."""
     from clumpylen_jax.inference import capacity
-    from clumpylen_jax.inference.lm import blockwise
     from clumpylen_jax.inference.uncertainty import fisher_matrix
-    model, data, param, u, active, slots, idx, blocks = _rows_case()
-    full, rows = _rows_residuals(model, data, param, u, active, slots, idx)
-    J0 = np.asarray(jax.jit(blockwise(full, blocks))(u[idx])[1])
-    J1 = np.asarray(jax.jit(blockwise(rows, blocks))(u[idx])[1])
-    assert np.abs(J1 - J0).max() <= 1e-12 * np.abs(J0).max()
+    model, data, param, u, active, _, _ = _rows_case()
     kept = np.array([0, 1, 3])
     entries = np.r_[param.size - 1, kept, 4 + np.ravel([[2 * k, 2 * k + 1] for k in kept]), 12 + kept]
     f_rows = np.asarray(capacity.fisher_of_rows(model, data, param, u, jnp.asarray(entries),

@@ -376,22 +376,39 @@ def _entries(ctx: _Ctx, slots, shaped=None):
     return np.concatenate(parts)
 
 
+def _solve_layout(ctx: _Ctx, slots, shaped=None):
+    """(entries, rows) of a local solve in `capacity.solve_local_batch`'s layout: host and
+    background entries, then for each row of `slots`, padded with the row ctx.cap to a
+    whole number of LOCAL_SLOTS chunks over the capacity, its flux, β and R_e entries and,
+    where shape moves are on, its q and PA (freed where shaped[slot], default ctx.shaped);
+    u.size marks an entry held or padding. The same shapes for every solve: one program."""
+    shaped = ctx.shaped if shaped is None else shaped
+    n_rows = -(-ctx.cap // LOCAL_SLOTS) * LOCAL_SLOTS
+    rows = np.full(n_rows, ctx.cap)
+    rows[:len(slots)] = slots
+    none = ctx.param.size
+    parts = [ctx.host_index]
+    for i in rows:
+        parts.append(ctx.slot_index[i] if i < ctx.cap else np.full(ctx.slot_index.shape[1], none))
+        if ctx.shape_index is not None:
+            parts.append(ctx.shape_index[i] if i < ctx.cap and shaped[i] else np.full(2, none))
+    return np.concatenate(parts), rows
+
+
 def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None):
     """LM over host, background and the clump slots slot_sets[s] of each start only (their
-    q, PA too where shaped_sets[s][slot]; default ctx.shaped). Every start's entries must
-    be as many (one compiled program per count)."""
+    q, PA too where shaped_sets[s][slot]; default ctx.shaped): `_solve_layout`."""
     s = ctx.opts.n_starts
     us, actives = np.asarray(us), np.asarray(actives, float)
-    idxs = np.stack([_entries(ctx, sl, shaped) for sl, shaped in
-                     zip(slot_sets, shaped_sets or [None] * len(slot_sets))])
-    slots = np.asarray(slot_sets, int)
+    idxs, slots = (np.stack(a) for a in zip(*(_solve_layout(ctx, sl, shaped) for sl, shaped in
+                                              zip(slot_sets, shaped_sets or [None] * len(slot_sets)))))
     m = us.shape[0]
     pad = np.arange(s) % m
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
         jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), TOL, _step_limits(ctx, m),
-        int(ctx.host_index.size))
+        int(ctx.host_index.size), LOCAL_SLOTS)
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
@@ -413,6 +430,13 @@ def _local_slots(ctx: _Ctx, u, active, new_slot: int, beta):
 def _residuals(ctx: _Ctx, u, active):
     mu = capacity.predict(ctx.model, ctx.param, jnp.asarray(u), jnp.asarray(active, float))
     return [np.asarray(d) - np.asarray(m) for d, m in zip(ctx.data.images, mu)]
+
+
+def _log_likelihood(ctx: _Ctx, u, active):
+    """ln L at u with the mask `active`, no refit: from `_residuals` (the `predict` program the
+    counting compiles anyway; one program of the whole model fewer than a ln L program)."""
+    return -0.5 * sum(float(np.sum(np.asarray(m) * r * r / np.asarray(v))) for r, m, v in
+                      zip(_residuals(ctx, u, active), ctx.data.masks, ctx.data.variances))
 
 
 def _chi2_dof(ctx: _Ctx, lnl, n_active):
@@ -504,8 +528,8 @@ def _prune(ctx: _Ctx, u, lnl, active, steps):
     """Remove, worst first, clumps the criterion would not keep even without a refit."""
     while active.sum() > 0:
         masks = np.tile(active, (ctx.cap, 1)) * (1.0 - np.eye(ctx.cap))
-        without = np.asarray(capacity.log_likelihoods(ctx.model, ctx.data, ctx.param,
-                                                      jnp.asarray(u), jnp.asarray(masks)))
+        without = np.array([_log_likelihood(ctx, u, m) if a > 0 else -np.inf
+                            for m, a in zip(masks, active)])
         gain = np.where(active > 0, lnl - without, np.inf)
         i = int(np.argmin(gain))
         value, keep = _criterion(ctx.opts, float(gain[i]), ctx.k_clump, ctx.n_pix)
@@ -712,7 +736,7 @@ def _final(ctx: _Ctx, u, active, steps):
     Over the host, background and the kept clumps' entries only (`_fit_local`): an inactive
     slot's Jacobian columns are zero and its step is zero, so leaving them out gives the
     same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
-    One compile for the final's number of kept clumps."""
+    The program is the counting steps' (`_solve_layout`): no compile here."""
     rng = np.random.default_rng(ctx.opts.seed)
     s = ctx.opts.n_starts
     eps = rng.normal(0.0, 0.1, (s, u.size))

@@ -6,9 +6,11 @@ beyond its build-time R_e would otherwise be cut by a square stamp). A fit varie
 Parametrization over every slot; the light of slot i is multiplied by active[i]
 (0 or 1, a traced array), so adding, removing or moving a clump changes arrays only,
 never shapes or static fields: `solve_batch`, `solve_local_batch`, `predict` and the
-Fisher matrix compile once per (model, data layout, capacity, batch size, number of rows
-moved) and are reused at every counting step. An inactive slot has zero Jacobian columns,
-and gets a zero step.
+Fisher matrix compile once per (model, data layout, capacity, batch size) and are reused
+at every counting step; `solve_local_batch` takes any number of rows moved up to the
+capacity (padded, `_local_normal`), so the counting steps and the final refit of every
+kept clump share one program. An inactive slot has zero Jacobian columns, and gets a
+zero step.
 
 A model whose clump renderer draws any number of clumps (`Renderer.any_count`: analytic
 clumps at every ray of a lensed scene, round Gaussians of an unlensed one) renders in a
@@ -16,8 +18,8 @@ local solve only the rows it moves, the other clumps' light made once per solve
 (`held_light`): an LM step of a counting fit with 20 slots draws 3 clumps, not 20.
 Round Gaussians add linearly, so this is the full model to rounding (tested). A lensed
 model's rebinning from the lens plane to the sub-grids shares split pixels with a
-minmod-limited slope, which is not linear: the held light plus the moved clumps differs
-from every clump drawn at once by 2e-5 of the clump image's peak (SIS recovery scene,
+minmod-limited slope, which is not linear: the held light plus the moved clumps (each
+chunk of rows of `_local_normal` drawn apart) differs from every clump drawn at once by 2e-5 of the clump image's peak (SIS recovery scene,
 103² px: at most 0.002 σ in a residual, 5e-4 of the largest Jacobian entry), far below
 that rebinning's own error against the exact pixel integral (`pixels.rebin_sparse`).
 """
@@ -33,12 +35,8 @@ from ..convolve import fft_shape
 from ..source import Source
 from .likelihood import predicted_images, whitened_residuals
 from .lm import blockwise, held_residuals, levenberg_marquardt
-from .params import Parametrization, clump_rows, masked_clumps, part_blocks
+from .params import clump_rows, masked_clumps, part_blocks
 from .uncertainty import fisher_of, pixel_weights
-
-
-def _residuals(model, data, param: Parametrization, u, active):
-    return whitened_residuals(predicted_images(model, masked_clumps(param.state(u), active)), data)
 
 
 def _solve(model, data, param, u0, active, rtol, max_steps):
@@ -69,37 +67,132 @@ def _per_start(max_steps, n):
 
 
 def held_light(model, state, slots, active):
-    """Band images (counts/s, no sky) of the active clumps outside the rows `slots`: what a
-    fit that moves only those rows holds fixed (rendered once per solve, not per step). The
-    host is left out of the source, not drawn at zero flux."""
-    others = masked_clumps(state, active.at[slots].set(0.0)).render_source()
+    """Band images (counts/s, no sky) of the active clumps outside the rows `slots` (entries
+    equal to the capacity are padding): what a fit that moves only those rows holds fixed
+    (rendered once per solve, not per step). The host is left out of the source, not drawn
+    at zero flux."""
+    others = masked_clumps(state, active.at[slots].set(0.0, mode="drop")).render_source()
     return jax.lax.stop_gradient(model.band_images(Source(clumps=others.clumps)))
 
 
-def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host):
-    """LM over the entries idx of u only (the rest held): a fixed number of columns. The
-    clump entries of idx belong to the rows `slots`; with a model that renders any number
-    of clumps only those rows are drawn at each step, plus the held light of the others."""
-    subset = model.clumps.any_count
-    resid_held = held_residuals(model, data, param, to_u=lambda v: u.at[idx].set(v),
-                                active=active, slots=slots if subset else None,
-                                fixed=held_light(model, param.state(u), slots, active)
-                                if subset else None)
-    blocks = (np.arange(n_host), np.arange(n_host, idx.shape[0]))
-    r = levenberg_marquardt(lambda v: resid_held(v, 0), u[idx], max_steps, rtol,
-                            blockwise(resid_held, blocks))
-    return u.at[idx].set(r.u), -0.5 * r.chi2, r.success, r.n_steps
+def _rows_source(model, state, rows, keep):
+    """The clumps of the rows `rows` (int [W]) alone, rows where keep (bool [W]) is False
+    dark: the light one chunk of a local solve moves. A model that draws any number of
+    clumps draws just these rows; another draws every slot, the others dark."""
+    if model.clumps.any_count:
+        cl = clump_rows(state, jnp.where(keep, rows, 0)).source.clumps
+        return Source(clumps=eqx.tree_at(lambda c: c.flux, cl, cl.flux * keep[:, None]))
+    zero = jnp.zeros_like(state.source.clumps.re_arcsec)
+    on = zero.at[rows].max(keep.astype(zero.dtype), mode="drop")
+    return Source(clumps=masked_clumps(state, on).source.clumps)
+
+
+def _host_images(model, source, like):
+    """Band images with sky of the host alone (of the sky alone for a source without one)."""
+    if source.bulge is None and source.disk is None:
+        return tuple(lay.with_sky(jnp.zeros_like(x)) for lay, x in zip(model.layouts, like))
+    return model.noiseless(Source(bulge=source.bulge, disk=source.disk))
+
+
+def _tangents(f, v, first, width):
+    """f(v) and its derivatives along the entries first … first + width − 1 of v (first
+    traced): (primal, tangents with a leading axis of width)."""
+    basis = jax.nn.one_hot(first + jnp.arange(width), v.size, dtype=v.dtype)
+    return jax.vmap(lambda t: jax.jvp(f, (v,), (t,)), out_axes=(None, 0))(basis)
+
+
+def _normal_by_blocks(r, T_host, T_chunks, n_chunks):
+    """(JᵀJ, Jᵀr) of Jᵀ = [T_host; T_chunks[0]; T_chunks[1]; …] (rows: a column's derivative)
+    from its blocks, the chunks from n_chunks on (zero columns) skipped: [K, K], [K] with
+    K = h + C·w."""
+    h, (n_c, w, _) = T_host.shape[0], T_chunks.shape
+    put = jax.lax.dynamic_update_slice
+    H = jnp.zeros((h + n_c * w,) * 2, r.dtype).at[:h, :h].set(T_host @ T_host.T)
+    g = jnp.zeros(h + n_c * w, r.dtype).at[:h].set(T_host @ r)
+
+    def row(c, Hg):
+        H, g = Hg
+        T_c, o = T_chunks[c], h + c * w
+        hc = T_host @ T_c.T
+        H = put(put(H, hc, (0, o)), hc.T, (o, 0))
+
+        def col(c2, H):
+            b = T_c @ T_chunks[c2].T
+            return put(put(H, b, (o, h + c2 * w)), b.T, (h + c2 * w, o))
+        return jax.lax.fori_loop(0, c + 1, col, H), put(g, T_c @ r, (o,))
+    return jax.lax.fori_loop(0, n_chunks, row, (H, g))
+
+
+def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int, chunk: int):
+    """v ↦ (residuals, JᵀJ, Jᵀr) of the fit over the entries idx of u (the rest held).
+
+    Layout (`auto._solve_layout`): idx = n_host host and background entries, then per row
+    of slots (int [C·chunk]) its clump entries, as many per row; the entry u.size (a
+    column that moves nothing) and the row `capacity` pad. The clump rows are drawn
+    `chunk` at a time, only the chunks holding a row (a fori_loop with a traced count),
+    each with the derivatives along its own columns, the host's and the other chunks'
+    light held; then the host with its columns, every clump's light held. So the program
+    is the same for a counting step (one chunk) and the final refit of every kept clump
+    (C chunks at most: compiled once), and a step costs the chunks it uses: padding
+    columns are never pushed through the model, and their blocks of JᵀJ never formed.
+    fixed: the light of the active clumps outside slots (`held_light`)."""
+    cap = active.shape[0]
+    n_c = slots.size // chunk
+    width = (idx.size - n_host) // n_c
+    n_chunks = (jnp.sum(slots < cap) + chunk - 1) // chunk
+
+    def state_of(v):
+        return masked_clumps(param.state(u.at[idx].set(v, mode="drop")), active)
+
+    def chunk_residuals(c):
+        """The chunk's light and its residuals alone (whose derivatives are the residuals')."""
+        rows = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
+
+        def f(w):
+            light = model.band_images(_rows_source(model, state_of(w), rows, rows < cap))
+            return whitened_residuals(light, data), light
+        return f
+
+    def host_residuals(light):
+        def f(w):
+            st = state_of(w)
+            mu = _host_images(model, st.source, light)
+            return whitened_residuals(tuple(m + b + l for m, b, l in zip(
+                mu, st.background_counts_per_s, light)), data)
+        return f
+
+    def normal(v):
+        def add_chunk(c, carry):
+            light, T_chunks = carry
+            (_, l_c), (t_c, _) = _tangents(chunk_residuals(c), v, n_host + c * width, width)
+            return tuple(a + b for a, b in zip(light, l_c)), T_chunks.at[c].set(t_c)
+        n_r = sum(f.size for f in fixed)
+        T0 = jnp.zeros((n_c, width, n_r), v.dtype)
+        light, T_chunks = jax.lax.fori_loop(0, n_chunks, add_chunk, (tuple(fixed), T0))
+        r, T_host = _tangents(host_residuals(light), v, 0, n_host)
+        H, g = _normal_by_blocks(r, T_host, T_chunks, n_chunks)
+        return r, H, g
+    return normal
+
+
+def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host, chunk):
+    """LM over the entries idx of u only (`_local_normal`)."""
+    normal = _local_normal(model, data, param, u, idx, slots, active,
+                           held_light(model, param.state(u), slots, active), n_host, chunk)
+    v0 = u.at[idx].get(mode="fill", fill_value=0.0)
+    r = levenberg_marquardt(lambda v: normal(v)[0], v0, max_steps, rtol, normal=normal)
+    return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps
 
 
 @eqx.filter_jit
 def solve_local_batch(model, data, param, us, idxs, slots, actives, rtol, max_steps,
-                      n_host: int):
+                      n_host: int, chunk: int):
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
-    step is K Jacobian columns (host, background and a few clumps), not the capacity's.
-    Each idxs[s] lists every host and background entry first (n_host of them, static), then
-    the entries of the clump rows slots[s] (int [S, L]): the Jacobian's two blocks
-    (`lm.blockwise`). max_steps as in solve_batch."""
-    return jax.lax.map(lambda a: _solve_local(model, data, param, *a[:4], rtol, a[4], n_host),
+    step is that of the columns used (host, background and the clumps of the rows slots[s],
+    int [S, C·chunk]), not the capacity's. Layout and padding: `_local_normal`; one compiled
+    program for any number of rows up to C·chunk. max_steps as in solve_batch."""
+    return jax.lax.map(lambda a: _solve_local(model, data, param, *a[:4], rtol, a[4], n_host,
+                                              chunk),
                        (us, idxs, slots, actives, _per_start(max_steps, us.shape[0])))  # see solve_batch
 
 
@@ -124,15 +217,6 @@ def fisher_of_rows(model, data, param, u, entries, slots, active):
 def predict(model, param, u, active):
     """Model images (with sky and fitted background) at u with the mask applied."""
     return predicted_images(model, masked_clumps(param.state(u), active))
-
-
-@eqx.filter_jit
-def log_likelihoods(model, data, param, u, actives):
-    """ln L at one u under each mask of actives [M, N] (no refit): [M]."""
-    def one(a):
-        r = _residuals(model, data, param, u, a)
-        return -0.5 * jnp.sum(r * r)
-    return jax.lax.map(one, actives)
 
 
 def psf_sigma_pixels(model) -> np.ndarray:

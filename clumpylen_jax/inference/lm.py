@@ -20,13 +20,15 @@ of `capacity.py`) gets a zero step.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .likelihood import predicted_images, whitened_residuals
-from .params import CLUMP_PART, HOST_PART, clump_rows, held, masked_clumps, part_blocks
+from .params import CLUMP_PART, HOST_PART, held, masked_clumps, part_blocks
 
 LAMBDA0 = 1e-3
 LAMBDA_MAX = 1e12
@@ -37,19 +39,25 @@ DECREMENT_TOL = 1e-2      # χ² a Gauss–Newton step may still gain at a conve
 class LMResult(eqx.Module):
     u: jnp.ndarray
     chi2: jnp.ndarray
-    jacobian: jnp.ndarray        # d(whitened residuals)/du at u
+    jacobian: Optional[jnp.ndarray]   # d(whitened residuals)/du at u (None: `normal` given)
     n_steps: jnp.ndarray
     success: jnp.ndarray
 
 
-def _propose(u, r, J, lam):
-    g = J.T @ r
-    H = J.T @ J
+def _propose(u, H, g, lam):
     d = jnp.diag(H)
     d = jnp.where(d > 0, d, 1.0)
     delta = jnp.linalg.solve(H + lam * jnp.diag(d), -g)
     delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
-    return u + delta, delta, g
+    return u + delta, delta
+
+
+def _normal_of_jacobian(r_and_j):
+    """u ↦ (r, JᵀJ, Jᵀr, J): the linearisation `levenberg_marquardt` steps from, J kept."""
+    def lin(u):
+        r, J = r_and_j(u)
+        return r, J.T @ J, J.T @ r, J
+    return lin
 
 
 def _jacfwd(resid):
@@ -91,65 +99,60 @@ def blockwise(resid_held, blocks):
     return r_and_j
 
 
-def held_residuals(scene_model, data, param, to_u=None, active=None, slots=None, fixed=None):
-    """resid_held(v, b) for `blockwise`: the whitened residuals at u = to_u(v) (v itself when
-    None) with the clumps held for block 0 (host and background entries) and the host held
-    for block 1 (clump entries: `params.part_blocks`); active: a clump mask or None.
-
-    slots, fixed: only the clump rows `slots` are rendered (`params.clump_rows`; a model
-    with `any_count` clumps) and the band images `fixed` (counts/s, no sky: the light of
-    every other clump, which the fit holds) are added to the prediction: the cost of a
-    residual is then that of the clumps it moves, not of every slot."""
+def held_residuals(scene_model, data, param, active=None):
+    """resid_held(v, b) for `blockwise`: the whitened residuals at u = v with the clumps held
+    for block 0 (host and background entries) and the host held for block 1 (clump entries:
+    `params.part_blocks`); active: a clump mask or None."""
     other = (CLUMP_PART, HOST_PART)
 
-    def resid_held(v, b):
-        state = param.state(v if to_u is None else to_u(v))
+    def resid_held(u, b):
+        state = param.state(u)
         if active is not None:
             state = masked_clumps(state, active)
-        if slots is not None:
-            state = clump_rows(state, slots)
-        mu = predicted_images(scene_model, held(state, other[b]))
-        if fixed is not None:
-            mu = tuple(m + f for m, f in zip(mu, fixed))
-        return whitened_residuals(mu, data)
+        return whitened_residuals(predicted_images(scene_model, held(state, other[b])), data)
     return resid_held
 
 
 def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
-                        r_and_j=None) -> LMResult:
+                        r_and_j=None, normal=None) -> LMResult:
     """Minimise |resid(u)|² over u from u0 (module doc). Traceable: vmap it for many starts.
     max_steps: an int or a traced integer (0: no step, u0 returned with χ² = inf).
-    r_and_j: u ↦ (resid(u), Jacobian) when given (`blockwise`), else one jacfwd of resid."""
-    r_and_j = r_and_j or _jacfwd(resid)
+    r_and_j: u ↦ (resid(u), Jacobian) when given (`blockwise`), else one jacfwd of resid.
+    normal: u ↦ (resid(u), JᵀJ, Jᵀr) instead of r_and_j, for a caller that builds the normal
+    equations by blocks without one J (`capacity.solve_local_batch`); the result's
+    jacobian is then None."""
+    lin = (lambda u: (*normal(u), None)) if normal is not None else \
+        _normal_of_jacobian(r_and_j or _jacfwd(resid))
 
     n = u0.size
     r_shape = jax.eval_shape(resid, u0)
-    r0 = jnp.zeros(r_shape.shape, u0.dtype)
-    init = dict(u=u0, r=r0, J=jnp.zeros((r0.size, n), u0.dtype), chi2=jnp.asarray(jnp.inf, u0.dtype),
-                trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype), step=jnp.asarray(0),
-                done=jnp.asarray(False), ok=jnp.asarray(False))
+    zero_j = None if normal is not None else jnp.zeros((int(np.prod(r_shape.shape)), n), u0.dtype)
+    init = dict(u=u0, H=jnp.zeros((n, n), u0.dtype), g=jnp.zeros(n, u0.dtype), J=zero_j,
+                chi2=jnp.asarray(jnp.inf, u0.dtype), trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype),
+                step=jnp.asarray(0), done=jnp.asarray(False), ok=jnp.asarray(False))
 
     def cond(s):
         return (s["step"] < max_steps) & ~s["done"]
 
     def body(s):
-        r_t, J_t = r_and_j(s["trial"])
+        r_t, H_t, g_t, J_t = lin(s["trial"])
         c_t = jnp.sum(r_t**2)
         accept = jnp.isfinite(c_t) & (c_t <= s["chi2"])
         # converged: a step close to Gauss–Newton (not one shrunk by a large λ after
         # rejections, which gains little anywhere) that gained almost nothing
         small = accept & (s["chi2"] - c_t <= rtol * c_t) & (s["lam"] <= 1.0)
         keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
-        u, r, J, chi2 = (keep(s["trial"], s["u"]), keep(r_t, s["r"]), keep(J_t, s["J"]),
+        u, H, g, chi2 = (keep(s["trial"], s["u"]), keep(H_t, s["H"]), keep(g_t, s["g"]),
                          keep(c_t, s["chi2"]))
+        J = None if J_t is None else keep(J_t, s["J"])
         lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
-        trial, _, _ = _propose(u, r, J, lam)
+        trial, _ = _propose(u, H, g, lam)
         stuck = lam > LAMBDA_MAX
         # stuck at the largest damping: converged only if a full Gauss–Newton step would
         # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
-        _, gn, g = _propose(u, r, J, LAMBDA_GN)
+        _, gn = _propose(u, H, g, LAMBDA_GN)
         at_min = -2.0 * jnp.dot(g, gn) < DECREMENT_TOL
-        return dict(u=u, r=r, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
+        return dict(u=u, H=H, g=g, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
                     done=small | stuck, ok=small | (stuck & at_min))
 
     s = jax.lax.while_loop(cond, body, init)
