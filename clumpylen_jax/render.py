@@ -154,7 +154,7 @@ def _sampled_image(brightness, grid: Grid, order: int, dtype):
     textured disk) is then compiled once per grid instead of order² times. Offsets and
     weights are products of Python floats rounded once to dtype, the constants the unrolled
     sum used, and the samples are added in the same order (y outer, x inner); XLA still rounds
-    some pixels differently from the unrolled sum (≤ 1 ulp). The body closes over
+    some pixels differently from the unrolled sum (in the last bit or two). The body closes over
     `brightness`, so an eager (unjitted) call compiles the loop anew: call it under jit.
     """
     offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))
