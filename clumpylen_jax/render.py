@@ -148,15 +148,27 @@ def gaussian_pixel_fractions(edges_arcsec, center_arcsec, sigma_arcsec):
 
 
 def _sampled_image(brightness, grid: Grid, order: int, dtype):
-    """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling."""
-    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))  # Python floats keep float32
+    """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling.
+
+    A loop over the samples, not an unrolled sum: a brightness of hundreds of operations (the
+    textured disk) is then compiled once per grid instead of order² times. Offsets and
+    weights are products of Python floats rounded once to dtype, the constants the unrolled
+    sum used, and the samples are added in the same order (y outer, x inner); XLA still rounds
+    some pixels differently from the unrolled sum (in the last bit or two). The body closes over
+    `brightness`, so an eager (unjitted) call compiles the loop anew: call it under jit.
+    """
+    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))
     p = grid.pixel_arcsec
+    dx = jnp.asarray([ox * p for _ in offs for ox in offs], dtype)
+    dy = jnp.asarray([oy * p for oy in offs for _ in offs], dtype)
+    w = jnp.asarray([wy * wx for wy in wts for wx in wts], dtype)
     xc = jnp.asarray(grid.x_centers(), dtype)[None, :]
     yc = jnp.asarray(grid.y_centers(), dtype)[:, None]
-    acc = jnp.zeros(grid.shape, dtype)
-    for oy, wy in zip(offs, wts):
-        for ox, wx in zip(offs, wts):
-            acc = acc + (wy * wx) * brightness(xc + ox * p, yc + oy * p)
+
+    def add_sample(k, acc):
+        return acc + w[k] * brightness(xc + dx[k], yc + dy[k])
+
+    acc = jax.lax.fori_loop(0, order * order, add_sample, jnp.zeros(grid.shape, dtype))
     return acc * (p * p)
 
 
