@@ -20,7 +20,8 @@
    summed, centre flux-weighted, ellipse from the pair's second moment) and each round
    clump as an elliptical one (where the renderer draws q and PA); the criterion decides.
    Then the final configuration is refitted from `n_starts` perturbed starts (best kept,
-   spread reported).
+   spread reported), where shape moves are made with every kept clump's q and PA free
+   (`AutoOptions.final_shape`).
 4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
    `flag` (0 = fine; bits in `FLAGS`) and blend columns.
 

@@ -72,7 +72,8 @@ def scene_options(scene) -> AutoOptions:
     (benchmarks/results/recovery_shape_lensed.md): an elongated clump then absorbed its
     neighbours, 4 clumps kept instead of 6 and 2 of 6 recovered instead of 5. After the
     counting, the merge and shape moves (`AutoOptions.merge`, on) make a clump elliptical
-    only where the criterion asks for it (benchmarks/results/recovery_merge.md)."""
+    where the criterion asks for it (benchmarks/results/recovery_merge.md), and the final
+    refit frees every kept clump's shape (`AutoOptions.final_shape`, on)."""
     cl = getattr(scene.source, "clumps", None)
     n = getattr(cl, "sersic_n", AutoOptions.clump_n) if cl is not None else AutoOptions.clump_n
     return AutoOptions(clump_n=float(n), seed=int(scene.seed))
