@@ -159,13 +159,11 @@ def test_fisher_with_an_active_mask_is_the_fisher_of_the_active_clumps():
     assert np.allclose(f_masked[np.ix_(rows, rows)], f2, rtol=1e-8, atol=0)
 
 
-def test_blockwise_jacobian_is_the_jacobian():
-    """lm.blockwise (host and background columns with the clumps held, clump columns with the
-    host held) gives the Jacobian of one jacfwd over every entry, for a bulge, a disk and
-    round-Gaussian clumps."""
-    from clumpylen_jax.inference.likelihood import make_data, make_residuals
-    from clumpylen_jax.inference.lm import blockwise, held_residuals
-    from clumpylen_jax.inference.params import make_state, parametrize, part_blocks
+def _host_disk_case():
+    """(model, data, param) of a bulge, a disk and three round-Gaussian clumps, the data
+    1.1× the model, every host, clump and background entry free but the host's shape."""
+    from clumpylen_jax.inference.likelihood import make_data
+    from clumpylen_jax.inference.params import make_state, parametrize
     from clumpylen_jax.source import Disk
     src = Source(bulge=HOST, disk=Disk(dataclasses.replace(HOST, re_arcsec=jnp.asarray(0.4)),
                                        jnp.asarray(0.5)),
@@ -178,6 +176,17 @@ def test_blockwise_jacobian_is_the_jacobian():
         "bulge.flux": True, "bulge.re_arcsec": True, "disk.sersic.flux": True,
         "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
         "background": True})
+    return model, data, param
+
+
+def test_blockwise_jacobian_is_the_jacobian():
+    """lm.blockwise (host and background columns with the clumps held, clump columns with the
+    host held) gives the Jacobian of one jacfwd over every entry, for a bulge, a disk and
+    round-Gaussian clumps."""
+    from clumpylen_jax.inference.likelihood import make_residuals
+    from clumpylen_jax.inference.lm import blockwise, held_residuals
+    from clumpylen_jax.inference.params import part_blocks
+    model, data, param = _host_disk_case()
     u = param.initial() + 0.01
     host, clumps = part_blocks(param)
     assert host.size == 4 and clumps.size == 12
@@ -264,20 +273,7 @@ def test_local_normal_equations_are_the_full_models():
 def test_local_normal_equations_with_a_host():
     """The same (test above) with a bulge and a disk: the host drawn alone, its columns
     with every clump's light held."""
-    from clumpylen_jax.inference.likelihood import make_data
-    from clumpylen_jax.inference.params import make_state, parametrize
-    from clumpylen_jax.source import Disk
-    src = Source(bulge=HOST, disk=Disk(dataclasses.replace(HOST, re_arcsec=jnp.asarray(0.4)),
-                                       jnp.asarray(0.5)),
-                 clumps=dataclasses.replace(CLUMPS, q=jnp.ones(3)))
-    model = build_model(src, BANDS, field_arcsec=FIELD,
-                        accuracy=dataclasses.replace(ACC, clump_pixels="round_gaussian"))
-    img = np.asarray(eqx.filter_jit(lambda m, s: m.noiseless(s))(model, src)[0])
-    data = make_data(model, [img * 1.1], [np.ones_like(img)], kind="gaussian")
-    param = parametrize(make_state(src, 1), {
-        "bulge.flux": True, "bulge.re_arcsec": True, "disk.sersic.flux": True,
-        "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
-        "background": True})
+    model, data, param = _host_disk_case()
     host, per_slot, _ = auto._index_tables(param, 3)
     slots = np.array([2, 0, 3, 3])          # slot 1 held (active), one padding row
     idx = np.r_[host, per_slot[2], per_slot[0], np.full(2 * per_slot.shape[1], param.size)]
