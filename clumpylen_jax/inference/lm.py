@@ -24,9 +24,10 @@ PSF sub-pixel puts all its light in one sub-pixel, and its position along one ax
 nothing (column ~1e-144); every trial threw that coordinate to the box edge (Δχ² +2.7e4 at
 λ up to 1e55), the fit sat at LAMBDA_MAX with a Gauss–Newton gain of 15 left in the other
 entries and was flagged not converged (unlensed recovery seeds 1 and 2, issue 18). So each
-entry is damped by at least DAMPING_FLOOR, one unit of Fisher information in u (an entry
-the data constrain to σ(u) ≳ 1): an unconstrained entry takes a vanishing step, a
-constrained one (Jᵢ² ≫ 1) is damped as before.
+entry is damped by at least DAMPING_FLOOR, one unit of Fisher information in u (the
+residuals are whitened, so JᵀJ is the Fisher matrix; an entry with less has σ(u) > 1, the
+data hardly constrain it): such an entry takes a vanishing step, a constrained one
+(Jᵢ² ≫ 1) is damped as before, and the steps near the minimum (λ → 0) are unchanged.
 """
 
 from __future__ import annotations
