@@ -138,6 +138,31 @@ def test_lm_reports_success_only_at_a_minimum():
     assert not bool(stuck.success) and int(stuck.n_steps) < 100 and np.all(np.asarray(stuck.u) == 0)
 
 
+def test_lm_damps_an_entry_whose_jacobian_column_all_but_vanishes():
+    """lm.DAMPING_FLOOR: the third entry moves the residual by ~1e-98 per unit (erf far in its
+    tail, as a clump's position when its light sits in one PSF sub-pixel), and a huge step in
+    it costs Δχ² 30. Damped by λ·Jᵢ² alone its trial step was ~1e98 whatever λ, every trial
+    failed and the fit stopped at the start (χ² 5.5 where the minimum is 0.92), not
+    converged. With the floor the other entries reach the least-squares solution and the fit
+    is converged there, the third entry unmoved; cut short (2 steps) it is not converged."""
+    from jax.scipy.special import erf
+    from clumpylen_jax.inference.lm import levenberg_marquardt
+    a = jnp.array([[2.0, 1.0], [1.0, 3.0], [0.5, -1.0]])
+    b = jnp.array([1.0, -2.0, 0.5])
+    exact = np.linalg.lstsq(np.asarray(a), np.asarray(b), rcond=None)[0]
+
+    def resid(u):
+        return jnp.concatenate([a @ u[:2] - b, jnp.atleast_1d(3.0 * erf(u[2]) - 2.5)])
+
+    u0 = jnp.array([0.0, 0.0, 15.0])
+    r = levenberg_marquardt(resid, u0, 100, 1e-10)
+    assert bool(r.success) and int(r.n_steps) < 10
+    assert np.allclose(r.u[:2], exact, atol=1e-8) and float(r.u[2]) == 15.0
+    assert np.isclose(float(r.chi2), float(np.sum((np.asarray(a) @ exact - np.asarray(b))**2)) + 0.25)
+    short = levenberg_marquardt(resid, u0, 2, 1e-10)
+    assert not bool(short.success) and not np.allclose(short.u[:2], exact, atol=1e-8)
+
+
 @pytest.mark.slow
 def test_fisher_with_an_active_mask_is_the_fisher_of_the_active_clumps():
     """uncertainty.fisher_matrix(active=...) (the Fisher of the fixed-capacity fits): the

@@ -16,6 +16,18 @@ Gauss–Newton (λ ≤ 1) that lowered χ² by less than rtol·χ², or damping 
 at a point where the full Gauss–Newton step predicts a χ² gain below DECREMENT_TOL (the
 minimum within rounding). A parameter with a zero Jacobian column (an inactive clump slot
 of `capacity.py`) gets a zero step.
+
+Marquardt's damping λ diag JᵀJ scales with each entry's own information, so an entry whose
+column all but vanishes is not damped at all: its step −Jᵢ·r / (λ Jᵢ²) grows without bound
+as Jᵢ → 0 whatever λ is. That happens in the fits: a clump whose R_e collapsed far below a
+PSF sub-pixel puts all its light in one sub-pixel, and its position along one axis then moves
+nothing (column ~1e-144); every trial threw that coordinate to the box edge (Δχ² +2.7e4 at
+λ up to 1e55), the fit sat at LAMBDA_MAX with a Gauss–Newton gain of 15 left in the other
+entries and was flagged not converged (unlensed recovery seeds 1 and 2, issue 18). So each
+entry is damped by at least DAMPING_FLOOR, one unit of Fisher information in u (the
+residuals are whitened, so JᵀJ is the Fisher matrix; an entry with less has σ(u) > 1, the
+data hardly constrain it): such an entry takes a vanishing step, a constrained one
+(Jᵢ² ≫ 1) is damped as before, and the steps near the minimum (λ → 0) are unchanged.
 """
 
 from __future__ import annotations
@@ -34,6 +46,7 @@ LAMBDA0 = 1e-3
 LAMBDA_MAX = 1e12
 LAMBDA_GN = 1e-12         # damping of the "Gauss–Newton" step of the stuck test (zero columns)
 DECREMENT_TOL = 1e-2      # χ² a Gauss–Newton step may still gain at a converged point
+DAMPING_FLOOR = 1.0       # least diagonal the damping scales with (module doc)
 
 
 class LMResult(eqx.Module):
@@ -45,8 +58,7 @@ class LMResult(eqx.Module):
 
 
 def _propose(u, H, g, lam):
-    d = jnp.diag(H)
-    d = jnp.where(d > 0, d, 1.0)
+    d = jnp.maximum(jnp.diag(H), DAMPING_FLOOR)
     delta = jnp.linalg.solve(H + lam * jnp.diag(d), -g)
     delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
     return u + delta, delta
