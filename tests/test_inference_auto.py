@@ -447,11 +447,14 @@ def test_final_shape_starts_round_clumps_from_their_shape_trials():
     assert np.all(np.isfinite(u3))
 
 
+@pytest.mark.slow
 def test_without_errors_the_same_clumps_and_no_table():
     """AutoOptions(errors=False) (what `clumpylen fit` asks for): the same optimum, bit for
     bit, as errors=True, with no Fisher matrix and no table. A tiny scene drawn in numpy (an
     exponential host and a Gaussian knot, 21², no PSF, no exact pixels) so that little is
-    compiled besides the fits' programs."""
+    compiled besides the fits' programs. Slow: two whole auto fits, 24–28 s on 2 cores
+    (`make test` took 10 min 18 s with it); the observation fits' errors=False path
+    still runs in test_observations."""
     n, pix = 21, 0.03
     field = ((-0.5 * n * pix, 0.5 * n * pix),) * 2
     acc = dataclasses.replace(TOY_ACCURACY, clump_pixels="round_gaussian", psf_oversampling=1)

@@ -43,7 +43,10 @@ def test_run_fit_emcee_writes_outputs(tmp_path):
     assert out.chains is not None and out.chains.method == "emcee"
 
 
+@pytest.mark.slow
 def test_multistart_matches_lm():
+    """fit_map_multistart reaches fit_map's optimum. Slow: 26 s on 2 cores, two compiled
+    fits of the whole model (`make test` took 10 min 18 s with it)."""
     model = toy_model(SRC, toy_bands(1), npix=21)
     noisy, _, var = eqx.filter_jit(model.observe)(SRC, jax.random.key(1))
     data = make_data(model, noisy, var)
