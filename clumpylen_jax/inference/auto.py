@@ -367,14 +367,10 @@ def _step_limits(ctx: _Ctx, m: int):
 
 def _entries(ctx: _Ctx, slots, shaped=None):
     """Entries of u a local solve frees: host and background, then each slot's (flux, β, R_e,
-    and its q, PA where shaped[slot], default ctx.shaped)."""
-    shaped = ctx.shaped if shaped is None else shaped
-    parts = [ctx.host_index]
-    for i in slots:
-        parts.append(ctx.slot_index[i])
-        if ctx.shape_index is not None and shaped[i]:
-            parts.append(ctx.shape_index[i])
-    return np.concatenate(parts)
+    and its q, PA where shaped[slot], default ctx.shaped): `_solve_layout` without its
+    padding and held entries."""
+    idx, _ = _solve_layout(ctx, slots, shaped)
+    return idx[idx < ctx.param.size]
 
 
 def _solve_layout(ctx: _Ctx, slots, shaped=None):

@@ -19,9 +19,10 @@ local solve only the rows it moves, the other clumps' light made once per solve
 Round Gaussians add linearly, so this is the full model to rounding (tested). A lensed
 model's rebinning from the lens plane to the sub-grids shares split pixels with a
 minmod-limited slope, which is not linear: the held light plus the moved clumps (each
-chunk of rows of `_local_normal` drawn apart) differs from every clump drawn at once by 2e-5 of the clump image's peak (SIS recovery scene,
-103² px: at most 0.002 σ in a residual, 5e-4 of the largest Jacobian entry), far below
-that rebinning's own error against the exact pixel integral (`pixels.rebin_sparse`).
+chunk of rows of `_local_normal` drawn apart) differs from every clump drawn at once by
+2e-5 of the clump image's peak (SIS recovery scene, 103² px: at most 0.002 σ in a
+residual, 5e-4 of the largest Jacobian entry), far below that rebinning's own error
+against the exact pixel integral (`pixels.rebin_sparse`).
 """
 
 from __future__ import annotations
