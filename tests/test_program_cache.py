@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from clumpylen_jax import programcache
 
 
@@ -97,6 +98,8 @@ print(float(out.sum()))
 """
 
 
+# slow: fresh processes, ~28 s on 2 cores (make test took 10 min 9 s with it)
+@pytest.mark.slow
 def test_program_also_in_jax_cache_is_stored_callable(tmp_path):
     """A program that JAX's persistent cache already holds is stored as XLA's own compile
     (JAX's copy serialises without its machine code: a later process fails calling it), and
