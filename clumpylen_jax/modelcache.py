@@ -55,23 +55,23 @@ def build(build_fn, source, bands, *, lens=None, folder=None, **settings):
     if path.is_file():
         try:
             model = pickle.loads(path.read_bytes())
-            path.touch()        # most recently used: kept longest by _evict
+            path.touch()        # most recently used: kept longest by evict
             return model
         except Exception:       # truncated or from other code: built again and replaced
             pass
     model = build_fn(source, bands, lens=lens, **settings)
     with atomic_write(path, "wb") as fh:
         pickle.dump(model, fh, protocol=pickle.HIGHEST_PROTOCOL)
-    _evict(Path(folder), KEEP_MODELS)
+    evict(Path(folder), KEEP_MODELS, "model-*.pkl")
     return model
 
 
-def _evict(folder: Path, keep: int):
-    """Delete all but the `keep` most recently used model files of `folder`."""
+def evict(folder: Path, keep: int, pattern: str):
+    """Delete all but the `keep` most recently used files of `folder` matching `pattern`."""
     def mtime(p):
         try:
             return p.stat().st_mtime
         except OSError:         # removed meanwhile by another run
             return 0.0
-    for old in sorted(folder.glob("model-*.pkl"), key=mtime, reverse=True)[keep:]:
+    for old in sorted(folder.glob(pattern), key=mtime, reverse=True)[keep:]:
         old.unlink(missing_ok=True)

@@ -400,6 +400,27 @@ def _program(name: str, fun, *args):
     return programcache.call(name, fun, *args, folder=_program_folder())
 
 
+def _with_host_light(model, source: Source):
+    """The model with its host's light per unit flux held (`SceneModel.with_host_light`):
+    computed by a program of its own, or read back from the cache folder (`lightcache`:
+    it depends on the host's geometry and the grids only). A source without host: the
+    model itself."""
+    if source.bulge is None and source.disk is None:
+        return model
+    host = Source(source.bulge, source.disk, None)
+    units = _kept_light("SceneModel.host_unit_light", lambda m, s: m.host_unit_light(s),
+                        model, host)
+    return model.with_host_light(units)
+
+
+def _kept_light(name: str, fun, *args):
+    """fun(*args) (light per unit flux) as one program, kept between runs in the cache
+    folder (`lightcache`) unless it is off."""
+    from . import lightcache
+    folder = cache_root() / "light" if cache_enabled() else None
+    return lightcache.kept(name, lambda: _program(name, fun, *args), args, folder)
+
+
 def _jit_call(model, method: str, *args):
     """Compile and call a SceneModel method (the model's arrays are traced, not hashed)."""
     return _program(f"SceneModel.{method}", lambda m, *a: getattr(m, method)(*a), model, *args)
@@ -490,7 +511,8 @@ def _launch_unlensed(prep: Prepared, prog: _Progress):
             model_mod.build_model, prep.source, prep.bands, lens=None,
             folder=cache_root() / "models" if cache_enabled() else None,
             accuracy=prep.accuracy, dtype=prep.dtype)
-        return unl_model, _jit_call(unl_model, 'band_images', prep.source)
+        return unl_model, _jit_call(_with_host_light(unl_model, prep.source), 'band_images',
+                                    prep.source)
 
 
 def _launch_magnifications(prep: Prepared, prog: _Progress):
@@ -567,8 +589,9 @@ def _render_bands(prep: Prepared, hr):
     # the high-resolution lens plane comes from the band render's own program: the host's
     # light at the traced pixels (per unit flux) and the rays are computed once for both
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
-    bands_out, hr_lensed = _program("SceneModel.band_render", _band_render, model, prep.source,
-                                    key, hr_fluxes)
+    bands_out, hr_lensed = _program("SceneModel.band_render", _band_render,
+                                    _with_host_light(model, prep.source), prep.source, key,
+                                    hr_fluxes)
     if scene.output.noise:
         noisy, clean, var = bands_out
     else:
@@ -714,7 +737,11 @@ def _hr_source_plane(prep: Prepared, mono):
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
     # the stamp groups' indices as tuples: static (baked in as constants), as before
     groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
-    return sgrid, _program("source_plane_images", _source_plane_images, mono, sgrid,
+    host = (None, None)
+    if mono.bulge is not None or mono.disk is not None:
+        host = _kept_light("source_plane_host_light", _source_plane_host_light,
+                           Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy)
+    return sgrid, _program("source_plane_images", _source_plane_images, mono, host, sgrid,
                            prep.accuracy, groups)
 
 
@@ -756,15 +783,28 @@ def _write_hr(prep: Prepared, out: Path, hr, later, lensed):
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
 
 
-def _source_plane_images(source: Source, grid, accuracy, groups):
-    """Pixel-integrated source-plane images [B, ny, nx] (counts or μJy per pixel)."""
-    img = 0.0
+def _source_plane_host_light(source: Source, grid, accuracy):
+    """Unit-flux pixel integrals (bulge, disk) [ny, nx] of the source's host on the
+    source-plane grid, None for a component it lacks."""
+    bulge = disk = None
     if source.bulge is not None:
-        img = img + source.bulge.flux[:, None, None] * render.sersic_image(
-            source.bulge, grid, order=accuracy.source_order, core=accuracy.exact_core)[None]
+        bulge = render.sersic_image(source.bulge, grid, order=accuracy.source_order,
+                                    core=accuracy.exact_core)
     if source.disk is not None:
-        img = img + source.disk.sersic.flux[:, None, None] * render.disk_image(
-            source.disk, grid, order=accuracy.source_order, core=accuracy.exact_core)[None]
+        disk = render.disk_image(source.disk, grid, order=accuracy.source_order,
+                                 core=accuracy.exact_core)
+    return bulge, disk
+
+
+def _source_plane_images(source: Source, host, grid, accuracy, groups):
+    """Pixel-integrated source-plane images [B, ny, nx] (counts or μJy per pixel); host:
+    `_source_plane_host_light` of the source."""
+    img = 0.0
+    bulge, disk = host
+    if bulge is not None:
+        img = img + source.bulge.flux[:, None, None] * bulge[None]
+    if disk is not None:
+        img = img + source.disk.sersic.flux[:, None, None] * disk[None]
     cl = source.clumps
     if cl is not None and cl.count > 0:
         img = img + jnp.moveaxis(render.clumps_image(cl, grid, groups, cl.flux,

@@ -148,7 +148,17 @@ def gaussian_pixel_fractions(edges_arcsec, center_arcsec, sigma_arcsec):
 
 
 def _sampled_image(brightness, grid: Grid, order: int, dtype):
-    """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling.
+    """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling."""
+    return _sample_sum(brightness, grid, order, dtype) * _pixel_area(grid)
+
+
+def _pixel_area(grid: Grid) -> float:
+    p = grid.pixel_arcsec
+    return p * p
+
+
+def _sample_sum(brightness, grid: Grid, order: int, dtype):
+    """`_sampled_image` / the pixel area: the weighted sum of each pixel's samples.
 
     A loop over the samples, not an unrolled sum: a brightness of hundreds of operations (the
     textured disk) is then compiled once per grid instead of order² times. Offsets and
@@ -168,8 +178,7 @@ def _sampled_image(brightness, grid: Grid, order: int, dtype):
     def add_sample(k, acc):
         return acc + w[k] * brightness(xc + dx[k], yc + dy[k])
 
-    acc = jax.lax.fori_loop(0, order * order, add_sample, jnp.zeros(grid.shape, dtype))
-    return acc * (p * p)
+    return jax.lax.fori_loop(0, order * order, add_sample, jnp.zeros(grid.shape, dtype))
 
 
 def _pixel_edges(index, origin, pixel, dtype):
@@ -255,11 +264,28 @@ def sersic_image(s: Sersic, grid: Grid, *, order: int = 4, core: int = 5, strip:
 def disk_image(d: Disk, grid: Grid, *, order: int = 4, core: int = 5, strip: bool = False,
                dtype=None):
     """Unit-flux pixel integrals of a disk; exact core (or strip) only when it is a plain Sérsic."""
+    values = disk_image_values(d, grid, order=order, core=core, strip=strip, dtype=dtype)
+    scale = disk_image_scale(d, grid)
+    return values if scale == 1.0 else values * scale
+
+
+def disk_image_values(d: Disk, grid: Grid, *, order: int = 4, core: int = 5,
+                      strip: bool = False, dtype=None):
+    """`disk_image` / `disk_image_scale`. Kept apart for a program that takes the values as
+    data (`model.hosts.UnlensedHosts`): XLA evaluates flux × (values × scale) as
+    values × (flux × scale), so a held image multiplied by a flux would differ from
+    flux × disk_image in the last bit; held values times the scale times the flux do not."""
     dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
     if d.arms is None and d.texture is None:
         return _plain_sersic_image(_disk_kw(d), grid, order, core, strip, dtype)
     mean = disk_modulation_mean(d)
-    return _sampled_image(lambda x, y: disk_unit_brightness(d, x, y, mean), grid, order, dtype)
+    return _sample_sum(lambda x, y: disk_unit_brightness(d, x, y, mean), grid, order, dtype)
+
+
+def disk_image_scale(d: Disk, grid: Grid) -> float:
+    """disk_image = disk_image_values × this: the pixel area for a sampled (armed or
+    textured) disk, else 1."""
+    return 1.0 if d.arms is None and d.texture is None else _pixel_area(grid)
 
 
 def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):

@@ -316,6 +316,25 @@ def _full_source():
     return Source(bulge, disk, clumps)
 
 
+@pytest.mark.slow  # 20-30 s (compiles): pytest -m slow; test_profiles has the fast check
+@pytest.mark.parametrize("lensed", [False, True])
+def test_held_host_light_gives_the_same_images_bit_for_bit(lensed):
+    """`with_host_light`: the host's light per unit flux made by one program and held as
+    data by the next (as `clumpylen simulate` reads it back from its cache) gives the
+    images the model draws itself, bit for bit (XLA reassociates flux × pixel area within
+    one program: `render.disk_image_values`)."""
+    full = _full_source()     # the bulge and an armed disk (its sampled image), no texture
+    src = Source(full.bulge, Disk(full.disk.sersic, full.disk.inclination_rad, full.disk.arms))
+    lens = SIS(f64(1.0), f64([0.0, 0.0])) if lensed else None
+    m = build_model(src, [Band("A", 0.06, 500.0, 0.1)], lens=lens,
+                    field_arcsec=((-1.2, 1.2), (-1.2, 1.2)), lens_pixel_arcsec=0.03,
+                    accuracy=Accuracy(psf_oversampling=1))
+    images = eqx.filter_jit(lambda m, s: m.band_images(s))
+    units = eqx.filter_jit(lambda m, s: m.host_unit_light(s))(m, src)
+    for own, held in zip(images(m, src), images(m.with_host_light(units), src)):
+        np.testing.assert_array_equal(np.asarray(held), np.asarray(own))
+
+
 def test_gradient_of_chi2_matches_finite_differences_on_a_lensed_psf_scene():
     src = _full_source()
     lens = SIS(f64(1.0), f64([0.0, 0.0]))

@@ -43,19 +43,34 @@ class UnlensedHosts(Renderer):
                        if accuracy.thin_strip else (False, False) for lay in layouts)
         return cls(strips, accuracy.source_order, accuracy.exact_core)
 
-    def subgrid_light(self, source: Source, subgrids):
+    def unit_light(self, source: Source, subgrids):
+        """Per sub-grid of `subgrids` (in its order): the unit-flux images (bulge, disk) on it,
+        None for a component the source lacks; the disk's as `render.disk_image_values`
+        (`subgrid_light` scales it, so that held values give the same bits)."""
+        return tuple(self._unit_images(source, g, k) for g, k in subgrids.items())
+
+    def _unit_images(self, source: Source, g, k: int):
+        strip_bulge, strip_disk = self.strips[k]
+        bulge = disk = None
+        if source.bulge is not None:
+            bulge = render.sersic_image(source.bulge, g, order=self.order, core=self.core,
+                                        strip=strip_bulge)
+        if source.disk is not None:
+            disk = render.disk_image_values(source.disk, g, order=self.order, core=self.core,
+                                            strip=strip_disk)
+        return bulge, disk
+
+    def subgrid_light(self, source: Source, subgrids, units=None):
+        """units: `unit_light(source, subgrids)` computed before (`HeldHosts`), or None."""
+        units = self.unit_light(source, subgrids) if units is None else units
         out = {}
-        for g, k in subgrids.items():
+        for g, (bulge, disk) in zip(subgrids, units):
             parts = []
-            strip_bulge, strip_disk = self.strips[k]
-            if source.bulge is not None:
-                parts.append((source.bulge.flux,
-                              render.sersic_image(source.bulge, g, order=self.order,
-                                                  core=self.core, strip=strip_bulge)))
-            if source.disk is not None:
-                parts.append((source.disk.sersic.flux,
-                              render.disk_image(source.disk, g, order=self.order,
-                                                core=self.core, strip=strip_disk)))
+            if bulge is not None:
+                parts.append((source.bulge.flux, bulge))
+            if disk is not None:
+                scale = render.disk_image_scale(source.disk, g)
+                parts.append((source.disk.sersic.flux, disk if scale == 1.0 else disk * scale))
             if parts:
                 out[g] = UnitImages(parts)
         return out
@@ -121,12 +136,11 @@ class LensPlaneHosts(Renderer):
     def _exact(self, brightness, kw, modulation=None):
         return brightness if self.core is None else self.core.apply(brightness, kw, modulation)
 
-    def values(self, source: Source):
-        """Host light at every traced pixel: (units [M, C] per unit flux, fluxes [C, B]).
-
-        One column per host component: each is achromatic, so every band is a linear
-        combination of C ≤ 2 lens-plane images.
-        """
+    def unit_light(self, source: Source, subgrids=None):
+        """Host light per unit flux at every traced pixel [M, C] (times the pixel area), one
+        column per host component (bulge, then disk); None without a host. Each component is
+        achromatic, so every band is a linear combination of these C ≤ 2 lens-plane images.
+        subgrids: unused (the light is the same for every sub-grid)."""
         p = self.plane
         # host components vary slowly across a lens-plane pixel's footprint: one ray per
         # pixel (its centre) unless host_subsampling asks for all of them
@@ -134,11 +148,10 @@ class LensPlaneHosts(Renderer):
             h1, h2, hw = p.beta1, p.beta2, p.ray_weights
         else:
             h1, h2, hw = p.beta1_center[:, None], p.beta2_center[:, None], jnp.ones(1, p.dtype)
-        units, fluxes = [], []
+        units = []
         if source.bulge is not None:
             kw = render._sersic_kw(source.bulge)
             units.append(self._exact(render.sersic_unit_brightness(h1, h2, **kw) @ hw, kw))
-            fluxes.append(source.bulge.flux)
         if source.disk is not None:
             d = source.disk
             u = render.disk_unit_brightness(d, h1, h2) @ hw
@@ -152,22 +165,45 @@ class LensPlaneHosts(Renderer):
                 u = self._exact(u, kw, modulation=u[i] / jnp.maximum(
                     smooth, jnp.finfo(smooth.dtype).tiny))
             units.append(u)
-            fluxes.append(d.sersic.flux)
-        if not units:
-            return None, None
-        return jnp.stack(units, -1) * p.pixel_area, jnp.stack(fluxes, 0)
+        return jnp.stack(units, -1) * p.pixel_area if units else None
 
-    def subgrid_light(self, source: Source, subgrids):
-        units, fluxes = self.values(source)
+    def values(self, source: Source, units=None):
+        """Host light at every traced pixel: (units [M, C] per unit flux, fluxes [C, B]), or
+        (None, None) without a host. units: `unit_light(source)` computed before, or None."""
+        units = self.unit_light(source) if units is None else units
+        if units is None:
+            return None, None
+        fluxes = ([source.bulge.flux] if source.bulge is not None else []) + (
+            [source.disk.sersic.flux] if source.disk is not None else [])
+        return units, jnp.stack(fluxes, 0)
+
+    def subgrid_light(self, source: Source, subgrids, units=None):
+        units, fluxes = self.values(source, units)
         if units is None:
             return {}
         hosts = self.plane.scatter(units)
         return {g: HostStack(self.plane.to_subgrid(hosts, k, g.shape), fluxes)
                 for g, k in subgrids.items()}
 
-    def add_lens_plane(self, source: Source, image):
+    def add_lens_plane(self, source: Source, image, units=None):
         """The lens-plane image [ny, nx, B] with the host set at the traced pixels."""
-        units, fluxes = self.values(source)
+        units, fluxes = self.values(source, units)
         if units is None:
             return image
         return image.at[self.plane.rows, self.plane.cols].set(units @ fluxes)
+
+
+class HeldHosts(Renderer):
+    """A host renderer (`hosts`) with its light per unit flux (`hosts.unit_light`) computed
+    before and held as data (`units`): the same images as `hosts` for any host fluxes,
+    without evaluating the host profiles again. For a run that reads that light back from
+    the cache folder (`lightcache`); not differentiable in the host's geometry."""
+
+    hosts: Renderer
+    units: object
+
+    def subgrid_light(self, source: Source, subgrids):
+        return self.hosts.subgrid_light(source, subgrids, self.units)
+
+    def add_lens_plane(self, source: Source, image):
+        return self.hosts.add_lens_plane(source, image, self.units)

@@ -19,6 +19,7 @@ differentiated).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
 import equinox as eqx
@@ -37,7 +38,7 @@ from ..source import Source
 from .clumps import (AnalyticClumps, LensedClumps, LinearisedClumps, RoundGaussianClumps,
                      SourceGridClumps, UnlensedClumps)
 from .detector import DetectorBand
-from .hosts import HostCore, LensPlaneHosts, UnlensedHosts
+from .hosts import HeldHosts, HostCore, LensPlaneHosts, UnlensedHosts
 from .lensplane import LensPlane
 from .renderer import Renderer, first_band_per_subgrid, n_bands
 
@@ -128,6 +129,17 @@ class SceneModel(eqx.Module):
         img = jnp.zeros(self.plane.grid.shape + (n_bands(source),), self.plane.dtype)
         img = self.clumps.add_lens_plane(source, self.hosts.add_lens_plane(source, img))
         return jnp.moveaxis(img, -1, 0)
+
+    def host_unit_light(self, source: Source):
+        """The host's light per unit flux on what the model draws it on (its sub-grids, or
+        the traced lens-plane pixels): a pytree of arrays for `with_host_light`."""
+        return self.hosts.unit_light(source, first_band_per_subgrid(self.layouts))
+
+    def with_host_light(self, units) -> "SceneModel":
+        """This model with the host's light per unit flux held (`host_unit_light` of the
+        source's host, computed before): its images are this model's for any host fluxes,
+        and not differentiable in the host's geometry."""
+        return dataclasses.replace(self, hosts=HeldHosts(self.hosts, units))
 
     def clump_magnifications(self, source: Source):
         """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
