@@ -13,9 +13,11 @@ One folder: ``$CLUMPYLEN_CACHE`` if set, else ``~/.cache/clumpylen_jax``. Inside
 - ``models/``: built scene models (`modelcache`): traced pixels, linearised clumps,
   rebinning operators (~160 MB for the paper scene);
 - ``psf/``: diffraction PSFs (`psf.default_cache_dir`);
-- ``rays/``: traced lens-plane corners (`raycache`).
+- ``rays/``: traced lens-plane corners (`raycache`);
+- ``light/``: the host's light per unit flux on the run's grids and traced pixels
+  (`lightcache`; ~150 MB for the paper scene, the last few kept).
 
-``programs/`` and ``models/`` are keyed on the source of every module of the package,
+``programs/``, ``models/`` and ``light/`` are keyed on the source of every module of the package,
 its version and the jax/jaxlib versions (besides their own inputs): a new release or
 any edit of the code starts them over.
 

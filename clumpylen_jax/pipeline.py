@@ -26,6 +26,7 @@ from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .builders import model_band
 from .cache import cache_enabled, cache_root
 from .errors import ConfigError
+from .model.renderer import first_band_per_subgrid
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
 from .timing import StageClock
 
@@ -407,10 +408,16 @@ def _with_host_light(model, source: Source):
     model itself."""
     if source.bulge is None and source.disk is None:
         return model
-    host = Source(source.bulge, source.disk, None)
-    units = _kept_light("SceneModel.host_unit_light", lambda m, s: m.host_unit_light(s),
-                        model, host)
+    # what the light depends on, and no more (the key hashes every array it is given):
+    # the host renderer (the traced pixels), the sub-grids and the host
+    subgrids = tuple(first_band_per_subgrid(model.layouts).items())
+    units = _kept_light("host_unit_light", _host_unit_light, model.hosts, subgrids,
+                        Source(source.bulge, source.disk, None))
     return model.with_host_light(units)
+
+
+def _host_unit_light(hosts, subgrids, source: Source):
+    return hosts.unit_light(source, dict(subgrids))
 
 
 def _kept_light(name: str, fun, *args):
@@ -480,7 +487,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 7 + len(scene.bands) + 8
+    n_stages = 7 + len(scene.bands) + 9
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     prep = prepare(scene, progress=prog)
@@ -520,30 +527,39 @@ def _launch_magnifications(prep: Prepared, prog: _Progress):
         return _jit_call(prep.model, 'clump_magnifications', prep.source)
 
 
-def _write_hr_stage(prep, prog, out, hr, later_hr, hr_lensed):
-    with prog.stage("high-resolution images"):
-        return _write_hr(prep, out, hr, later_hr, hr_lensed)
+def _write_hr_unlensed_stage(prep, prog, out, hr, later_hr):
+    with prog.stage("high-resolution images (unlensed)"):
+        return _write_hr_unlensed(prep, out, hr, later_hr)
+
+
+def _write_hr_lensed_stage(prep, prog, out, hr, hr_lensed):
+    with prog.stage("high-resolution images (lensed)"):
+        _write_hr_lensed(prep, out, hr, hr_lensed)
 
 
 def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start) -> dict:
     """The stages of `simulate` after `prepare`: programs launched in `pool`, the
     high-resolution products written by `writer`, the rest here; returns the summary."""
     scene, model, table = prep.scene, prep.model, prep.catalog
-    # the writer thread has nothing to do until the band render is done: it imports meanwhile
-    # what writing needs, off the main thread's path
+    # the writer thread imports what writing needs, off the main thread's path, then writes
+    # the high-resolution unlensed products as soon as the source plane is done (during the
+    # band render) and the lensed ones after the band render
     writer.submit(_import_writing_modules, bool(scene.output.rgb or scene.output.hr))
     later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
     hr = None
     if scene.output.hr:
         with prog.stage("high-resolution photometry"):
             hr = _hr_source(prep)
+        (out / "hr").mkdir(exist_ok=True)
     later_hr = pool.submit(_launch_hr, prep, prog, hr) if hr is not None else None
+    hr_written = (writer.submit(_write_hr_unlensed_stage, prep, prog, out, hr, later_hr)
+                  if later_hr is not None else None)
     later_mag = (pool.submit(_launch_magnifications, prep, prog)
                  if table is not None and len(table) and model.lensed else None)
     with prog.stage("render (compile + run)"):
         (noisy, clean, var), hr_lensed = _render_bands(prep, hr)
-    hr_written = (writer.submit(_write_hr_stage, prep, prog, out, hr, later_hr, hr_lensed)
-                  if later_hr is not None else None)
+    lensed_written = (writer.submit(_write_hr_lensed_stage, prep, prog, out, hr, hr_lensed)
+                      if hr_lensed is not None else None)
     unlensed, unl_model = [None] * len(scene.bands), None
     if later_unl is not None:
         with prog.stage("unlensed images"):
@@ -561,6 +577,8 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     if hr_written is not None:
         with prog.stage("high-resolution images (wait)"):
             hr_info = hr_written.result()
+            if lensed_written is not None:
+                lensed_written.result()
     with prog.stage("catalogue"):
         table = _write_catalogue(out, prep, later_mag)
     summary = _summary(prep, summary_bands, table, hr_info)
@@ -745,42 +763,53 @@ def _hr_source_plane(prep: Prepared, mono):
                            prep.accuracy, groups)
 
 
-def _write_hr(prep: Prepared, out: Path, hr, later, lensed):
-    """High-resolution lensed (the band render's) and unlensed (`later`: `_launch_hr`'s,
-    launched) images written to out/hr: the lensed ones first, while the source-plane
-    program may still run."""
-    scene = prep.scene
-    model = prep.model
-    waves = scene.output.hr_rgb_um
+def _write_hr_lensed(prep: Prepared, out: Path, hr, lensed):
+    """High-resolution lensed images (the band render's) written to out/hr."""
+    scene, model = prep.scene, prep.model
     _, names, unit = hr
-    lensed = None if lensed is None else np.asarray(lensed)
-    hr_dir = out / "hr"
-    hr_dir.mkdir(exist_ok=True)
-    rgb = rgbimage.hr_channel_names(names, waves, scene.output.rgb)  # red, green, blue
-    idx = [names.index(n) for n in rgb] if len(names) >= 3 else None
-    if lensed is not None:
-        wcs = _wcs_for(model.hr_grid, scene)
-        for k, name in enumerate(names):
-            hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
-            io.write_fits_image(hr_dir / f"lensed_{name}.fits", lensed[k].astype(np.float32),
-                                wcs=wcs, header=hdr)
-        if idx is not None:
-            title = rgbimage.rgb_title(rgb, False, kind="high resolution, lensed")
-            rgbimage.save_composite(hr_dir / "rgb_lensed.png", [lensed[k] for k in idx],
-                                    rgbimage.extent_of_grid(model.hr_grid), wcs=wcs, title=title)
+    lensed = np.asarray(lensed)
+    wcs = _wcs_for(model.hr_grid, scene)
+    for k, name in enumerate(names):
+        hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
+        io.write_fits_image(out / "hr" / f"lensed_{name}.fits", lensed[k].astype(np.float32),
+                            wcs=wcs, header=hdr)
+    idx = _hr_rgb_index(prep, names)
+    if idx is not None:
+        title = rgbimage.rgb_title([names[k] for k in idx], False,
+                                   kind="high resolution, lensed")
+        rgbimage.save_composite(out / "hr" / "rgb_lensed.png", [lensed[k] for k in idx],
+                                rgbimage.extent_of_grid(model.hr_grid), wcs=wcs, title=title)
+
+
+def _write_hr_unlensed(prep: Prepared, out: Path, hr, later):
+    """High-resolution unlensed images (`later`: `_launch_hr`'s, launched) written to
+    out/hr; returns summary.json's "hr" entry."""
+    scene = prep.scene
+    _, names, unit = hr
     sgrid, unl = later.result()
     unl = np.asarray(unl)
     wcs = _wcs_for(sgrid, scene)
     for k, name in enumerate(names):
         hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
-        io.write_fits_image(hr_dir / f"unlensed_{name}.fits", unl[k].astype(np.float32),
+        io.write_fits_image(out / "hr" / f"unlensed_{name}.fits", unl[k].astype(np.float32),
                             wcs=wcs, header=hdr)
+    idx = _hr_rgb_index(prep, names)
     if idx is not None:
-        title = rgbimage.rgb_title(rgb, False, kind="high resolution, unlensed")
-        rgbimage.save_composite(hr_dir / "rgb_unlensed.png", [unl[k] for k in idx],
+        title = rgbimage.rgb_title([names[k] for k in idx], False,
+                                   kind="high resolution, unlensed")
+        rgbimage.save_composite(out / "hr" / "rgb_unlensed.png", [unl[k] for k in idx],
                                 rgbimage.extent_of_grid(sgrid), wcs=wcs, title=title,
                                 frame="β", crop=True)
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
+
+
+def _hr_rgb_index(prep: Prepared, names):
+    """Indices into `names` of the high-resolution composites' red, green, blue (None: fewer
+    than three images)."""
+    if len(names) < 3:
+        return None
+    rgb = rgbimage.hr_channel_names(names, prep.scene.output.hr_rgb_um, prep.scene.output.rgb)
+    return [names.index(n) for n in rgb]
 
 
 def _source_plane_host_light(source: Source, grid, accuracy):

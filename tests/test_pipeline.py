@@ -145,8 +145,8 @@ def test_no_high_resolution_output_costs_nothing(tmp_path, monkeypatch):
     def refuse(*a, **k):
         raise AssertionError("high-resolution work for a scene that drops it")
 
-    for name in ("_hr_source", "_launch_hr", "_write_hr", "_monochromatic_source",
-                 "_source_plane_images"):
+    for name in ("_hr_source", "_launch_hr", "_write_hr_lensed", "_write_hr_unlensed",
+                 "_monochromatic_source", "_source_plane_images", "_source_plane_host_light"):
         monkeypatch.setattr(pipeline, name, refuse)
     s = sc.load_scene("single-sersic")
     s = dataclasses.replace(s, output=dataclasses.replace(s.output, hr=False))

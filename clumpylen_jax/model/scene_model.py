@@ -130,15 +130,11 @@ class SceneModel(eqx.Module):
         img = self.clumps.add_lens_plane(source, self.hosts.add_lens_plane(source, img))
         return jnp.moveaxis(img, -1, 0)
 
-    def host_unit_light(self, source: Source):
-        """The host's light per unit flux on what the model draws it on (its sub-grids, or
-        the traced lens-plane pixels): a pytree of arrays for `with_host_light`."""
-        return self.hosts.unit_light(source, first_band_per_subgrid(self.layouts))
-
     def with_host_light(self, units) -> "SceneModel":
-        """This model with the host's light per unit flux held (`host_unit_light` of the
-        source's host, computed before): its images are this model's for any host fluxes,
-        and not differentiable in the host's geometry."""
+        """This model with the host's light per unit flux held: `units` is
+        `hosts.unit_light(source, first_band_per_subgrid(layouts))` of the source's host,
+        computed before. Its images are this model's for any host fluxes, and not
+        differentiable in the host's geometry."""
         return dataclasses.replace(self, hosts=HeldHosts(self.hosts, units))
 
     def clump_magnifications(self, source: Source):
