@@ -104,25 +104,30 @@ def _accuracy(scene) -> model_mod.Accuracy:
 
 def build_lens(scene, cosmology=None):
     """The scene's lens object (None for an unlensed scene)."""
-    L = scene.lens
-    if L is None:
+    if scene.lens is None:
         return None
-    cosmology = cosmology or _cosmology(scene)
+    return lens_object(scene.lens, scene.z_source, cosmology or _cosmology(scene))
+
+
+def lens_object(L, z_source: float, cosmology):
+    """The lens object (`deflection(θ1, θ2)`, arcsec) of a parsed `scene.Lens` for a source at
+    z_source: a built-in model, deflection maps placed about L.center_radec_deg, or the sum of
+    analytic components."""
     if L.model is not None:
         from .lensing.clusters import builtin_lens
-        return builtin_lens(L.model, scene.z_source, cosmology=cosmology)
+        return builtin_lens(L.model, z_source, cosmology=cosmology)
     if L.deflection is not None:
         from .lensing.fits import load_deflection_maps
         norm = ("dls_ds" if L.deflection.normalization_z_source is None
                 else {"z_source": L.deflection.normalization_z_source})
         return load_deflection_maps(L.deflection.x, L.deflection.y,
                                     lens_center_radec_deg=L.center_radec_deg, z_lens=L.z_lens,
-                                    z_source=scene.z_source, normalization=norm,
+                                    z_source=z_source, normalization=norm,
                                     cosmology=cosmology)
     from .lensing.analytic import LensSum
     from .lensing.clusters import lens_component
     # a dpie given by σ0 takes the scene's D_ls/D_s (DPIE.from_sigma)
-    ratio = (cosmo_mod.dls_ds(L.z_lens, scene.z_source, cosmology)
+    ratio = (cosmo_mod.dls_ds(L.z_lens, z_source, cosmology)
              if any("sigma0_kms" in c.params for c in L.components) else 1.0)
     lenses = [lens_component({"kind": c.kind, **c.params}, f"lens.components[{i}]", dls_ds_ratio=ratio)
               for i, c in enumerate(L.components)]

@@ -769,7 +769,9 @@ def _source(t, base_dir, band_names) -> Source:
 _LENS_KEYS = ("z_lens", "center_radec_deg", "deflection", "model", "components")
 
 
-def _lens(t, z_source: float, base_dir) -> Lens:
+def parse_lens(t, z_source: float, base_dir) -> Lens:
+    """The `[lens]` table of a scene (z_lens, center_radec_deg and one of deflection / model /
+    components) as a `Lens`; relative map paths are resolved against base_dir."""
     p = "lens"
     t = _table(t, p)
     _check_keys(t, p, _LENS_KEYS)
@@ -1027,7 +1029,7 @@ def scene_from_dict(d: dict, base_dir: str | os.PathLike | None = None, *, path:
     if "source" not in d:
         raise ConfigError("source", "<missing>", "a [source] table with a bulge, disk or clumps (required)")
     source = _source(d["source"], base_dir, band_names)
-    lens = _lens(d["lens"], z_source, base_dir) if "lens" in d else None
+    lens = parse_lens(d["lens"], z_source, base_dir) if "lens" in d else None
     render = _render(d.get("render", {}))
     output = _output(out_t, band_names)
 

@@ -75,6 +75,21 @@ def test_safe_inverse_singular_stays_finite():
     assert np.all(np.isfinite(np.asarray(safe_inverse(jnp.zeros((2, 2))))))
 
 
+def test_safe_inverse_keeps_weak_parameters_errors_beside_a_strong_one():
+    """Fisher diagonals spanning 20 decades (physical units) and two null directions: the
+    measured parameters get the errors of inverting their own block (the nulls are
+    uncorrelated with them up to 1e-10); unscaled, the eigenvalue floor rcond·max (4e8) sat
+    above their eigenvalues (4e4, 4e2) and shrank their errors 100×."""
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=(400, 5))
+    jac = b * np.array([1e9, 10.0, 1.0, 1e-9, 1e-9])
+    jac[:, 3:] += 1e-10 * b[:, 1:2]
+    f = jac.T @ jac
+    err = np.sqrt(np.diag(np.asarray(safe_inverse(jnp.asarray(f)))))
+    np.testing.assert_allclose(err[:3], np.sqrt(np.diag(np.linalg.inv(f[:3, :3]))), rtol=1e-6)
+    assert np.all(err[3:] > 1e3) and np.all(np.isfinite(err))
+
+
 def test_diagnostics_iid_and_stuck_chains():
     rng = np.random.default_rng(1)
     iid = rng.standard_normal((4, 1000, 2))

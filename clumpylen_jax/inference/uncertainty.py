@@ -50,15 +50,24 @@ class Uncertainty(eqx.Module):
 
 
 def safe_inverse(matrix, rcond: float = 1e-12):
-    """Inverse of a symmetric positive semi-definite matrix with eigenvalues floored at rcond·max.
+    """Inverse of a symmetric positive semi-definite matrix with eigenvalues floored at rcond·max,
+    after Jacobi scaling (F → D⁻¹ F D⁻¹, D² = diag F).
 
-    Null directions come back with variance 1/(rcond·max): huge but finite.
+    The scaling matters for Fisher matrices in physical units, whose diagonals span many decades
+    (a background in MJy/sr beside a flux in counts): floored unscaled, rcond·max exceeded the
+    genuine eigenvalues of the less informative parameters and shrank their errors (100× in
+    the test), and round-off in the eigenvectors of the null directions spread their huge
+    variance into well-measured ones. Entries with no information (diag below rcond·max diag)
+    keep D = 1. Null directions come back with variance ~1/rcond: huge but finite.
     """
     m = 0.5 * (matrix + matrix.T)
-    w, v = jnp.linalg.eigh(m)
+    diag = jnp.abs(jnp.diag(m))
+    d = jnp.where(diag > rcond * jnp.max(diag), jnp.sqrt(diag), 1.0)
+    ms = m / jnp.outer(d, d)
+    w, v = jnp.linalg.eigh(ms)
     floor = rcond * jnp.maximum(jnp.max(jnp.abs(w)), jnp.finfo(m.dtype).tiny / rcond)
     w = jnp.maximum(w, floor)
-    return (v / w[None, :]) @ v.T
+    return ((v / w[None, :]) @ v.T) / jnp.outer(d, d)
 
 
 def _model_vector(scene_model, param, x, active=None):

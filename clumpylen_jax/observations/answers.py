@@ -9,9 +9,10 @@ from the Fisher covariance, propagated linearly):
 - `flux_<F>` (data units summed), `mag_<F>` (observed AB). A band where
   flux/σ < detection_snr does not detect the clump: `mag_<F>` is then the upper
   limit ZP − 2.5 log10(max(F, 0) + snr·σ), `mag_<F>_err` NaN and `uplim_<F>` true;
-- with `[lens.local]`: `beta1_arcsec`, `beta2_arcsec` (β = A θ), `magnification`,
-  intrinsic `re_arcsec`/`q_src` (the image ellipse mapped through A) and
-  `mag_int_<F>` = mag + 2.5 log10 |μ|;
+- with a lens (`[lens.local]`, or a lens model placed on the cutout: `observations.lens`):
+  `beta1_arcsec`, `beta2_arcsec` (β = A θ; for a model β = θ_L − α(θ_L) from the lens centre),
+  `magnification` |μ| at each clump, intrinsic `re_arcsec`/`q_src` (the image ellipse mapped
+  through the clump's A) and `mag_int_<F>` = mag + 2.5 log10 |μ|;
 - with ≥ 2 bands and z_source: `mass_msun`, `age_myr` from the SPS model
   (`photometry.band_fluxes_ujy`): the posterior on a grid of log age × log mass,
   flat priors in both, Gaussian flux likelihood (negative fluxes and upper limits
@@ -73,8 +74,9 @@ def _param_err(cov, idx, label):
     return float(np.sqrt(cov[i, i])) if i is not None else np.nan
 
 
-def clump_rows(fit, observations, frame, scene):
-    """An astropy Table of the fitted clumps (see the module doc)."""
+def clump_rows(fit, observations, frame, scene, lens=None):
+    """An astropy Table of the fitted clumps (see the module doc); `lens` as
+    `observations.lens.place_lens` returns it (None: no lens)."""
     from astropy.table import Table
 
     opts = scene.fit
@@ -94,8 +96,12 @@ def clump_rows(fit, observations, frame, scene):
     pix, theta, th_cov = _position_columns(t, frame, phi, cov, idx)
     re_err = np.array([_param_err(cov, idx, f"clumps.re_arcsec[{i}]") for i in range(n)])
     pa_theta = np.array([frame.pa_theta(phi[i], pa[i])[0] for i in range(n)])
-    if scene.lens is not None:
-        re, re_err = _source_plane_columns(t, scene.lens, theta, th_cov, re, re_err, q, pa_theta)
+    mu = None
+    if lens is not None:
+        from .lens import source_plane
+        sp = source_plane(lens, theta)
+        mu = np.abs(sp.mu)
+        re, re_err = _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta)
     _size_columns(t, re, re_err, scene)
     if opts.clump_shape == "elliptical":
         t["q"] = q
@@ -105,9 +111,9 @@ def clump_rows(fit, observations, frame, scene):
     flux = np.asarray(cl.flux, float)
     f_err = np.array([[_param_err(cov, idx, f"clumps.flux[{i},{b}]") for b in range(len(observations))]
                       for i in range(n)])
-    _photometry_columns(t, flux, f_err, observations, opts.detection_snr, scene.lens)
+    _photometry_columns(t, flux, f_err, observations, opts.detection_snr, mu)
     if len(observations) >= 2 and scene.z_source is not None:
-        _mass_columns(t, flux, f_err, observations, scene)
+        _mass_columns(t, flux, f_err, observations, scene, mu)
     t["flag"] = _flags(fit, frame, pix, opts)
     return t
 
@@ -141,22 +147,22 @@ def _position_columns(t, frame, phi, cov, idx):
     return pix, theta, th_cov
 
 
-def _source_plane_columns(t, lens, theta, th_cov, re, re_err, q, pa_theta):
-    """Add β [arcsec] (β = A θ), the given magnification, the observed R_e and the intrinsic
-    q; returns the intrinsic (R_e [arcsec], its error): the image ellipse mapped through A."""
+def _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta):
+    """Add β [arcsec], |μ| (the lens's, not fitted), the observed R_e and the intrinsic q from
+    `sp` (lens.SourcePlane at the clumps); returns the intrinsic (R_e [arcsec], its error): the
+    image ellipse mapped through each clump's A."""
     n = len(re)
-    A = np.asarray(lens.matrix, float)
-    beta = theta @ A.T
-    b_cov = [A @ c @ A.T for c in th_cov]
+    beta = sp.beta
+    b_cov = [A @ c @ A.T for A, c in zip(sp.A, th_cov)]
     t["beta1_arcsec"] = beta[:, 0]
     t["beta1_arcsec_err"] = [np.sqrt(c[0, 0]) for c in b_cov]
     t["beta2_arcsec"] = beta[:, 1]
     t["beta2_arcsec_err"] = [np.sqrt(c[1, 1]) for c in b_cov]
-    t["magnification"] = np.full(n, abs(lens.magnification))
-    t["magnification_err"] = np.zeros(n)   # given, not fitted
+    t["magnification"] = np.abs(sp.mu)
+    t["magnification_err"] = np.zeros(n)   # the lens model's, not fitted
     t["re_obs_arcsec"] = re
     t["re_obs_arcsec_err"] = re_err
-    src = [_ellipse_through(A, re[i], q[i], pa_theta[i]) for i in range(n)]
+    src = [_ellipse_through(sp.A[i], re[i], q[i], pa_theta[i]) for i in range(n)]
     scale = np.array([s[0] / re[i] for i, s in enumerate(src)])
     t["q_src"] = [s[1] for s in src]
     return np.array([s[0] for s in src]), re_err * scale
@@ -173,9 +179,9 @@ def _size_columns(t, re, re_err, scene):
         t["re_pc_err"] = re_err / app
 
 
-def _photometry_columns(t, flux, f_err, observations, detection_snr, lens):
+def _photometry_columns(t, flux, f_err, observations, detection_snr, mu):
     """Add flux (data units), observed AB mag (upper limit below detection_snr σ), uplim and,
-    with a lens, the intrinsic mag per band."""
+    with |μ| per clump (None: no lens), the intrinsic mag per band."""
     for b, ob in enumerate(observations):
         F, s = flux[:, b], f_err[:, b]
         det = F >= detection_snr * s
@@ -188,14 +194,15 @@ def _photometry_columns(t, flux, f_err, observations, detection_snr, lens):
         t[f"mag_{ob.name}"] = mag
         t[f"mag_{ob.name}_err"] = mag_err
         t[f"uplim_{ob.name}"] = ~det
-        if lens is not None:
-            t[f"mag_int_{ob.name}"] = mag + 2.5 * np.log10(abs(lens.magnification))
+        if mu is not None:
+            t[f"mag_int_{ob.name}"] = mag + 2.5 * np.log10(mu)
             t[f"mag_int_{ob.name}_err"] = mag_err
 
 
-def _mass_columns(t, flux, f_err, observations, scene):
-    """Add mass [M☉] and age [Myr] from the SED fit of the delensed fluxes (in μJy)."""
-    mu = abs(scene.lens.magnification) if scene.lens is not None else 1.0
+def _mass_columns(t, flux, f_err, observations, scene, mu):
+    """Add mass [M☉] and age [Myr] from the SED fit of the fluxes (in μJy) delensed by |μ| per
+    clump (None: no lens)."""
+    mu = np.ones((len(flux), 1)) if mu is None else np.asarray(mu, float)[:, None]
     from ..photometry import AB_ZERO_UJY
     ujy = np.array([10 ** (-0.4 * (ob.zeropoint_ab - AB_ZERO_UJY)) for ob in observations])
     masses = sed_fit(flux * ujy / mu, f_err * ujy / mu, [ob.name for ob in observations],

@@ -7,9 +7,13 @@ resolves paths relative to the scene file, and returns an `ObservationScene`.
 Nothing is read or computed beyond the TOML here.
 
 Beyond SCENE.md, `[fit]` takes the knobs of the fit (defaults in `FitOptions`) and
-`[lens.local]` a local lens: convergence and shear at the arc, constant over the
-cutout (`{ convergence = 0.7, shear = [0.1, -0.05] }`), through which intrinsic
-(source-plane) sizes, magnitudes, positions and magnifications are reported.
+`[lens]` a lens through which intrinsic (source-plane) sizes, magnitudes, positions and
+magnifications are reported: `[lens.local]`, convergence and shear at the arc, constant
+over the cutout (`{ convergence = 0.7, shear = [0.1, -0.05] }`); or a lens model with the
+keys of a simulation scene's `[lens]` (z_lens, center_radec_deg, and deflection maps, a
+built-in model or analytic components), placed on the cutout by the data's celestial WCS,
+or by `cutout_center_radec_deg` / `cutout_center_arcsec` (where the first observation's
+central pixel lies: on the sky, or in θ from the lens centre).
 """
 
 from __future__ import annotations
@@ -110,13 +114,25 @@ class LocalLens:
 
 
 @dataclasses.dataclass(frozen=True)
+class LensModel:
+    """A lens model (a simulation scene's `scene.Lens`) and where the cutout sits in its θ frame:
+    `cutout_center_radec_deg` (RA, Dec of the first observation's central pixel; for cutouts
+    without a celestial WCS) or `cutout_center_arcsec` (θ of that pixel from the lens centre),
+    or neither when the data's WCS and the lens's centre place it."""
+
+    spec: object
+    cutout_center_radec_deg: Optional[tuple] = None
+    cutout_center_arcsec: Optional[tuple] = None
+
+
+@dataclasses.dataclass(frozen=True)
 class ObservationScene:
     name: str
     observations: tuple
     fit: FitOptions
     z_source: Optional[float] = None
     seed: int = 0
-    lens: Optional[LocalLens] = None
+    lens: Optional[object] = None   # LocalLens or LensModel
     cosmology: tuple = (70.0, 0.3)
     path: Optional[str] = None
     sps: tuple = ()                 # extra photometry.ab_magnitudes options
@@ -169,13 +185,7 @@ def _observation(t: dict, base: Path, k: int) -> ObservationSpec:
     return ObservationSpec(**d)
 
 
-def _local_lens(t) -> Optional[LocalLens]:
-    if t is None:
-        return None
-    if set(t) - {"local"}:
-        raise ConfigError("lens", sorted(t), "[lens.local] { convergence, shear } for fits of "
-                          "observations (deflection maps and cluster models: not yet)")
-    loc = t["local"]
+def _local_lens(loc) -> LocalLens:
     _check_keys(loc, {"convergence", "shear"}, "lens.local")
     k, g = loc.get("convergence"), loc.get("shear", [0.0, 0.0])
     if not _num(k):
@@ -187,6 +197,42 @@ def _local_lens(t) -> Optional[LocalLens]:
     if not (math.isfinite(mu) and abs(mu) < 1e4):
         raise ConfigError("lens.local", loc, "a lens away from a critical curve (|μ| < 1e4)")
     return lens
+
+
+_PLACEMENT_KEYS = ("cutout_center_radec_deg", "cutout_center_arcsec")
+
+
+def _lens(t, z_source, base):
+    """`[lens]`: LocalLens ([lens.local]) or LensModel (a simulation scene's lens keys plus
+    where the cutout sits), or None."""
+    if t is None:
+        return None
+    if not isinstance(t, dict):
+        raise ConfigError("lens", t, "a table: [lens.local] or a lens model")
+    if "local" in t:
+        if set(t) - {"local"}:
+            raise ConfigError("lens", sorted(t), "either [lens.local] alone or a lens model "
+                              "(z_lens, center_radec_deg, deflection | model | components)")
+        return _local_lens(t["local"])
+    if z_source is None:
+        raise ConfigError("scene.z_source", None, "a redshift: a lens model's deflection scales "
+                          "with D_ls/D_s(z_lens, z_source)")
+    from ..scene import parse_lens
+    place = {k: t[k] for k in _PLACEMENT_KEYS if k in t}
+    if len(place) > 1:
+        raise ConfigError("lens", sorted(place), "at most one of " + ", ".join(_PLACEMENT_KEYS))
+    for key, v in place.items():
+        if not (isinstance(v, list) and len(v) == 2 and all(_num(x) for x in v)):
+            raise ConfigError(f"lens.{key}", v, "[two numbers]" + (
+                " (RA, Dec in degrees)" if key.endswith("radec_deg") else " (θ1, θ2 in arcsec)"))
+    spec = parse_lens({k: v for k, v in t.items() if k not in _PLACEMENT_KEYS}, z_source, base)
+    ra_dec = place.get("cutout_center_radec_deg")
+    if ra_dec is not None and spec.center_radec_deg is None:
+        raise ConfigError("lens.center_radec_deg", "<missing>", "the lens centre's [RA, Dec] "
+                          "(degrees): cutout_center_radec_deg places the cutout on the sky")
+    return LensModel(spec, None if ra_dec is None else tuple(map(float, ra_dec)),
+                     None if "cutout_center_arcsec" not in place
+                     else tuple(map(float, place["cutout_center_arcsec"])))
 
 
 def parse_observation_scene(doc: dict, path: Optional[str] = None) -> ObservationScene:
@@ -220,7 +266,8 @@ def parse_observation_scene(doc: dict, path: Optional[str] = None) -> Observatio
     sps = doc.get("sps", {})
     _check_keys(sps, {"metallicity", "sfh", "sfh_duration_myr", "dust_av"}, "sps")
     return ObservationScene(sc.get("name", Path(path).stem if path else "fit"), specs, options,
-                            None if z is None else float(z), seed, _local_lens(doc.get("lens")),
+                            None if z is None else float(z), seed,
+                            _lens(doc.get("lens"), None if z is None else float(z), base),
                             (float(cosmo.get("H0", 70.0)), float(cosmo.get("Om0", 0.3))),
                             path, tuple(sorted(sps.items())))
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write, write_catalog, write_json, write_residual_fits
+from .lens import describe as describe_lens
 
 
 def _wcs_header(ob, frame_band):
@@ -74,13 +75,49 @@ def _stretch(img, lo, hi):
     return np.arcsinh(np.clip((img - lo) / max(hi - lo, 1e-30), -0.05, None) * 10) / np.arcsinh(10)
 
 
-def write_png(path: Path, observations, fit, table, frame) -> Path:
-    """Data, model and residual (χ) per band, clumps marked."""
+def _source_plane_panel(ax, ob, frame, lens, table):
+    """The first band's data mapped back to the source plane: every pixel centre's β, the mean
+    of the pixels in each β bin (60 × 60 bins over where the > 3σ pixels land); clumps at β."""
+    from .lens import source_plane
+    ny, nx = ob.data.shape
+    xy = np.stack(np.meshgrid(np.arange(nx, dtype=float), np.arange(ny, dtype=float)), -1)
+    use = ob.mask & np.isfinite(ob.data)
+    beta = source_plane(lens, frame.theta(frame.phi_of_pixel(xy[use], 0))).beta
+    d = ob.data[use]
+    bright = d > 3 * np.sqrt(ob.variance[use])
+    ref = beta[bright] if bright.sum() >= 10 else beta
+    lo, hi = np.percentile(ref, [1, 99], axis=0)
+    pad = 0.2 * (hi - lo) + 1e-3
+    rng = [(lo[0] - pad[0], hi[0] + pad[0]), (lo[1] - pad[1], hi[1] + pad[1])]
+    tot, ex, ey = np.histogram2d(beta[:, 0], beta[:, 1], 60, range=rng, weights=d)
+    cnt, _, _ = np.histogram2d(beta[:, 0], beta[:, 1], 60, range=rng)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        img = (tot / cnt).T
+    v0, v1 = np.nanpercentile(img, [5, 99.7])
+    # β1 runs West (DESIGN.md): East to the left, as on the sky
+    ax.imshow(_stretch(img, v0, v1), origin="lower", cmap="gray_r", vmin=0, vmax=1,
+              extent=(ex[0], ex[-1], ey[0], ey[-1]), interpolation="nearest")
+    ax.set_title(f"{ob.name} in the source plane")
+    if len(table):
+        ax.scatter(table["beta1_arcsec"], table["beta2_arcsec"], s=40, facecolors="none",
+                   edgecolors="tab:orange", linewidths=1.0)
+    ax.set_xlabel("β1 (arcsec, West)")
+    ax.set_ylabel("β2 (arcsec, North)")
+
+
+def write_png(path: Path, observations, fit, table, frame, lens=None) -> Path:
+    """Data, model and residual (χ) per band, clumps marked; with a lens, the first band's
+    data in the source plane beside them."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     nb = len(observations)
-    fig, axes = plt.subplots(nb, 3, figsize=(10.5, 3.4 * nb), squeeze=False)
+    ncol = 3 if lens is None else 4
+    fig, axes = plt.subplots(nb, ncol, figsize=(3.5 * ncol, 3.4 * nb), squeeze=False)
+    if lens is not None:
+        _source_plane_panel(axes[0, 3], observations[0], frame, lens, table)
+        for k in range(1, nb):
+            axes[k, 3].axis("off")
     for k, ob in enumerate(observations):
         d = np.where(ob.mask, ob.data, np.nan)
         mu = np.asarray(fit.images[k])
@@ -126,7 +163,7 @@ def chi2_per_dof(observations, fit) -> dict:
     return out
 
 
-def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None) -> list:
+def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None, lens=None) -> list:
     """Every output file of the fit into out_dir; returns their paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -164,13 +201,11 @@ def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None)
                   if frame.reference.pixel_matrix_arcsec is not None
                   else "pixel axes (no WCS): x taken as West, y as North"},
         "fit_options": {k: getattr(scene.fit, k) for k in scene.fit.__dataclass_fields__},
-        "lens": None if scene.lens is None else {"convergence": scene.lens.convergence,
-                                                 "shear": list(scene.lens.shear),
-                                                 "magnification": scene.lens.magnification},
+        "lens": describe_lens(lens),
         "z_source": scene.z_source,
     }
     summary.update(extra or {})
     write_json(out / "summary.json", summary)
     files.append(out / "summary.json")
-    files.append(write_png(out / "fit.png", observations, fit, table, frame))
+    files.append(write_png(out / "fit.png", observations, fit, table, frame, lens))
     return files

@@ -16,6 +16,7 @@ from .answers import clump_rows, host_summary
 from .config import ObservationScene, load_observation_scene
 from .fit import fit_observations
 from .frame import fit_frame
+from .lens import place_lens
 from .read import read_observation
 
 
@@ -106,6 +107,7 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         scene = load_observation_scene(str(scene))
     t0 = time.perf_counter()
     obs, frame = read_scene_data(scene)
+    lens = place_lens(scene, frame)
     read_s = time.perf_counter() - t0
     opts = scene.fit
     starts = None
@@ -126,10 +128,10 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
     fit.timings_s["read"] = round(read_s, 3)
     fit.timings_s["clump_starts" if opts.clumps != "auto" else "auto"] = round(starts_s, 3)
     fit.timings_s["command_total"] = round(time.perf_counter() - t0, 3)
-    table = clump_rows(fit, obs, frame, scene)
+    table = clump_rows(fit, obs, frame, scene, lens)
     host = host_summary(fit, obs, frame)
     files = []
     if out_dir is not None:
         from .outputs import write_all
-        files = write_all(out_dir, scene, obs, frame, fit, table, host)
+        files = write_all(out_dir, scene, obs, frame, fit, table, host, lens=lens)
     return fit, table, host, files
