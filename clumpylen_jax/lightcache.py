@@ -24,14 +24,12 @@ recently used `KEEP_FILES` are kept.
 from __future__ import annotations
 
 import hashlib
-import pickle
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from .io import atomic_write
-from .modelcache import evict
+from .modelcache import pickled
 from .programcache import _environment, _machine, _package_digest, feed_pytree
 
 _LAYOUT = "1"
@@ -53,17 +51,5 @@ def kept(name: str, compute, args, folder=None):
     key = None if folder is None else light_key(name, args)
     if key is None:
         return compute()
-    path = Path(folder) / f"{name}-{key[:40]}.pkl"
-    if path.is_file():
-        try:
-            light = pickle.loads(path.read_bytes())
-            path.touch()        # most recently used: kept longest by evict
-            return light
-        except Exception:       # truncated or foreign: computed again and replaced
-            pass
-    light = compute()
-    with atomic_write(path, "wb") as fh:
-        pickle.dump(jax.tree_util.tree_map(np.asarray, light), fh,
-                    protocol=pickle.HIGHEST_PROTOCOL)
-    evict(Path(folder), KEEP_FILES, "*.pkl")
-    return light
+    return pickled(Path(folder), f"{name}-{key[:40]}.pkl", compute, KEEP_FILES, "*.pkl",
+                   lambda light: jax.tree_util.tree_map(np.asarray, light))

@@ -51,19 +51,28 @@ def build(build_fn, source, bands, *, lens=None, folder=None, **settings):
     key = None if folder is None else model_key(source, bands, lens, **settings)
     if key is None:
         return build_fn(source, bands, lens=lens, **settings)
-    path = Path(folder) / f"model-{key[:40]}.pkl"
+    return pickled(Path(folder), f"model-{key[:40]}.pkl",
+                   lambda: build_fn(source, bands, lens=lens, **settings), KEEP_MODELS,
+                   "model-*.pkl")
+
+
+def pickled(folder: Path, name: str, compute, keep: int, pattern: str, stored=lambda x: x):
+    """folder/name read back (pickle), else compute() written there atomically as stored(it),
+    keeping the `keep` most recently used files of folder that match `pattern`. A truncated
+    or foreign file is computed again and replaced."""
+    path = folder / name
     if path.is_file():
         try:
-            model = pickle.loads(path.read_bytes())
+            value = pickle.loads(path.read_bytes())
             path.touch()        # most recently used: kept longest by evict
-            return model
-        except Exception:       # truncated or from other code: built again and replaced
+            return value
+        except Exception:       # truncated or from other code: computed again and replaced
             pass
-    model = build_fn(source, bands, lens=lens, **settings)
+    value = compute()
     with atomic_write(path, "wb") as fh:
-        pickle.dump(model, fh, protocol=pickle.HIGHEST_PROTOCOL)
-    evict(Path(folder), KEEP_MODELS, "model-*.pkl")
-    return model
+        pickle.dump(stored(value), fh, protocol=pickle.HIGHEST_PROTOCOL)
+    evict(folder, keep, pattern)
+    return value
 
 
 def evict(folder: Path, keep: int, pattern: str):

@@ -768,43 +768,34 @@ def _hr_source_plane(prep: Prepared, mono):
                            prep.accuracy, groups)
 
 
-def _write_hr_lensed(prep: Prepared, out: Path, hr, lensed):
-    """High-resolution lensed images (the band render's) written to out/hr."""
-    scene, model = prep.scene, prep.model
+def _write_hr_set(prep: Prepared, out: Path, hr, images, grid, lensed: bool, **composite):
+    """One set of high-resolution images (FITS per name, and the colour PNG) on `grid`."""
     _, names, unit = hr
-    lensed = np.asarray(lensed)
-    wcs = _wcs_for(model.hr_grid, scene)
+    kind = "lensed" if lensed else "unlensed"
+    wcs = _wcs_for(grid, prep.scene)
     for k, name in enumerate(names):
-        hdr = {"BUNIT": unit, "PIXSCALE": model.hr_grid.pixel_arcsec}
-        io.write_fits_image(out / "hr" / f"lensed_{name}.fits", lensed[k].astype(np.float32),
+        hdr = {"BUNIT": unit, "PIXSCALE": grid.pixel_arcsec}
+        io.write_fits_image(out / "hr" / f"{kind}_{name}.fits", images[k].astype(np.float32),
                             wcs=wcs, header=hdr)
     idx = _hr_rgb_index(prep, names)
     if idx is not None:
         title = rgbimage.rgb_title([names[k] for k in idx], False,
-                                   kind="high resolution, lensed")
-        rgbimage.save_composite(out / "hr" / "rgb_lensed.png", [lensed[k] for k in idx],
-                                rgbimage.extent_of_grid(model.hr_grid), wcs=wcs, title=title)
+                                   kind=f"high resolution, {kind}")
+        rgbimage.save_composite(out / "hr" / f"rgb_{kind}.png", [images[k] for k in idx],
+                                rgbimage.extent_of_grid(grid), wcs=wcs, title=title, **composite)
+
+
+def _write_hr_lensed(prep: Prepared, out: Path, hr, lensed):
+    """High-resolution lensed images (the band render's) written to out/hr."""
+    _write_hr_set(prep, out, hr, np.asarray(lensed), prep.model.hr_grid, True)
 
 
 def _write_hr_unlensed(prep: Prepared, out: Path, hr, later):
     """High-resolution unlensed images (`later`: `_launch_hr`'s, launched) written to
     out/hr; returns summary.json's "hr" entry."""
-    scene = prep.scene
     _, names, unit = hr
     sgrid, unl = later.result()
-    unl = np.asarray(unl)
-    wcs = _wcs_for(sgrid, scene)
-    for k, name in enumerate(names):
-        hdr = {"BUNIT": unit, "PIXSCALE": sgrid.pixel_arcsec}
-        io.write_fits_image(out / "hr" / f"unlensed_{name}.fits", unl[k].astype(np.float32),
-                            wcs=wcs, header=hdr)
-    idx = _hr_rgb_index(prep, names)
-    if idx is not None:
-        title = rgbimage.rgb_title([names[k] for k in idx], False,
-                                   kind="high resolution, unlensed")
-        rgbimage.save_composite(out / "hr" / "rgb_unlensed.png", [unl[k] for k in idx],
-                                rgbimage.extent_of_grid(sgrid), wcs=wcs, title=title,
-                                frame="β", crop=True)
+    _write_hr_set(prep, out, hr, np.asarray(unl), sgrid, False, frame="β", crop=True)
     return {"names": names, "unit": unit, "source_grid": dataclasses.asdict(sgrid)}
 
 

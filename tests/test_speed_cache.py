@@ -113,3 +113,7 @@ def test_cli_cache_on_off_same_images_and_prints_the_split(capsys, monkeypatch, 
     assert main(["simulate", "single-sersic", "--out", str(tmp_path / "off"), "--no-cache"]) == 0
     assert "compilation cache off" in capsys.readouterr().out
     assert _fits_digest(tmp_path / "on") == _fits_digest(tmp_path / "off")
+    # a second run reads the host's light back (lightcache) and gives the same bits
+    assert any((tmp_path / "cache" / "light").glob("*.pkl"))
+    assert main(["simulate", "single-sersic", "--out", str(tmp_path / "again")]) == 0
+    assert _fits_digest(tmp_path / "again") == _fits_digest(tmp_path / "on")
