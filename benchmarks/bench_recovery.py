@@ -220,7 +220,7 @@ def summarise(results):
         v = np.array([c[f"pull_{p}"] for c in hi if f"pull_{p}" in c])   # NaN counts as > 3
         out[f"pull_{p}_within3"] = float(np.mean(np.abs(v) < 3)) if v.size else None
         out[f"pull_{p}_median"] = float(np.median(v)) if v.size else None
-    out["converged"] = float(np.mean([c["flag"] == 0 for c in clumps if c["recovered"]])) \
+    out["converged"] = float(np.mean([(c["flag"] & 1) == 0 for c in clumps if c["recovered"]])) \
         if any(c["recovered"] for c in clumps) else None
     out["false_per_scene"] = float(np.mean([r["false"] for r in results]))
     out["false_snr10_per_scene"] = float(np.mean([r["false_snr10"] for r in results]))
@@ -262,7 +262,7 @@ def _write(results, kinds, n_seeds, wall_s, name="recovery"):
                   f"(circularised R_e√q: {_fmt(s['pull_re_circ_within3'])}), "
                   f"β1 {_fmt(s['pull_beta1_within3'])}, β2 {_fmt(s['pull_beta2_within3'])}; "
                   f"median pull flux {_fmt(s['pull_flux_median'])}, R_e {_fmt(s['pull_re_median'])} "
-                  f"(R_e√q {_fmt(s['pull_re_circ_median'])}); converged (flag 0) "
+                  f"(R_e√q {_fmt(s['pull_re_circ_median'])}); converged (flag bit 1 clear) "
                   f"{_fmt(s['converged'])}; "
                   f"false clumps per scene {s['false_per_scene']:.2f} "
                   f"(S/N > 10: {s['false_snr10_per_scene']:.2f}, max {s['max_false_snr10']})", ""]

@@ -615,3 +615,28 @@ def test_source_plane_panel_maps_both_images_of_a_source_back_to_it(tmp_path):
     peak = (x0 + (i + 0.5) * step[0], y0 + (j + 0.5) * step[1])
     assert np.hypot(peak[0] - 0.15, peak[1] - 0.05) < 0.02, (peak, step)
     plt.close(fig)
+
+
+def test_flags_share_the_mock_fits_bits_and_mark_unresolved_sizes():
+    """Observation fits use `inference.auto.FLAGS`: R_e at a bound 2, the field's edge 4, and 16
+    where σ(R_e) > R_e (a size the data do not measure); NaN σ (R_e held) is not flagged."""
+    import types
+
+    import jax.numpy as jnp
+
+    from clumpylen_jax.inference.auto import FLAGS
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.answers import _flags
+    from clumpylen_jax.pixels import Grid
+    opts = FitOptions()
+    re = jnp.asarray([0.05, opts.clump_re_min_arcsec, 0.05, 0.05])
+    fit = types.SimpleNamespace(success=True, state=types.SimpleNamespace(
+        source=types.SimpleNamespace(clumps=types.SimpleNamespace(re_arcsec=re))))
+    frame = types.SimpleNamespace(grids=[Grid(0.0, 0.0, 0.03, 20, 20)])
+    pix = np.array([[10.0, 10.0], [10.0, 10.0], [0.2, 10.0], [10.0, 10.0]])
+    re_err = np.array([0.01, 0.01, 0.01, 0.2])
+    flags = _flags(fit, frame, pix, opts, re_err > np.asarray(re))
+    assert list(flags) == [0, FLAGS["re_at_bound"] | FLAGS["size_unresolved"],
+                           FLAGS["position_at_box_edge"], FLAGS["size_unresolved"]]
+    held = _flags(fit, frame, pix, opts, np.full(4, np.nan) > np.asarray(re))
+    assert list(held) == [0, FLAGS["re_at_bound"], FLAGS["position_at_box_edge"], 0]

@@ -68,8 +68,11 @@ RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the uppe
 CLUMP_Q_RANGE = (0.2, 1.0)
 HOST_N_RANGE = (0.3, 6.0)
 LOG = logging.getLogger(__name__)
-FLAGS = {"not_converged": 1, "re_at_upper_bound": 2, "position_at_box_edge": 4,
-         "unstable_across_starts": 8}
+# the `flag` bits of fit.ecsv, for mock-image and observation fits alike; "size_unresolved":
+# σ(R_e) > R_e, the data do not measure the size (a clump far below the PSF): R_e is then at
+# most R_e + 2σ, and q and PA are unmeasured too
+FLAGS = {"not_converged": 1, "re_at_bound": 2, "position_at_box_edge": 4,
+         "unstable_across_starts": 8, "size_unresolved": 16}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -814,8 +817,10 @@ def _table(ctx, state, unc, idx, ok, spread, n_images, zeropoints_ab):
     edge = (np.min(np.minimum(c - lo, hi - c), axis=1) < 1e-3 * (hi - lo))
     beta_err = np.hypot(np.asarray(t["beta1_arcsec_err"]), np.asarray(t["beta2_arcsec_err"]))
     flag = np.where(ok, 0, FLAGS["not_converged"])
-    flag = flag | np.where(np.asarray(cl.re_arcsec) > 0.99 * re_hi, FLAGS["re_at_upper_bound"], 0)
+    flag = flag | np.where(np.asarray(cl.re_arcsec) > 0.99 * re_hi, FLAGS["re_at_bound"], 0)
     flag = flag | np.where(edge, FLAGS["position_at_box_edge"], 0)
+    flag = flag | np.where(np.asarray(t["re_arcsec_err"]) > np.asarray(t["re_arcsec"]),
+                           FLAGS["size_unresolved"], 0)
     flag = flag | np.where(spread[0][idx] > np.maximum(3 * beta_err, 1e-9),
                            FLAGS["unstable_across_starts"], 0)
     corr, partner = _blends(unc, ctx.param.labels, idx)

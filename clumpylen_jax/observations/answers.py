@@ -18,8 +18,9 @@ from the Fisher covariance, propagated linearly):
   flat priors in both, Gaussian flux likelihood (negative fluxes and upper limits
   included as they are) with a 5 % calibration floor; median and half the
   16–84 % width reported.
-- `flag`: 0 converged; 1 the fit did not converge; 2 the clump sits within a pixel of
-  the field's edge; 4 the R_e hit a prior bound.
+- `flag` (bits of `inference.auto.FLAGS`, as in mock-image fits): 0 fine; 1 the fit did
+  not converge; 2 the R_e hit a prior bound; 4 the clump sits within a pixel of the field's
+  edge; 16 the size is unresolved (σ(R_e) > R_e: read R_e as an upper limit).
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ def clump_rows(fit, observations, frame, scene, lens=None):
     _photometry_columns(t, flux, f_err, observations, opts.detection_snr, mu)
     if len(observations) >= 2 and scene.z_source is not None:
         _mass_columns(t, flux, f_err, observations, scene, mu)
-    t["flag"] = _flags(fit, frame, pix, opts)
+    t["flag"] = _flags(fit, frame, pix, opts, re_err > re)
     return t
 
 
@@ -211,17 +212,19 @@ def _mass_columns(t, flux, f_err, observations, scene, mu):
         t[key] = val
 
 
-def _flags(fit, frame, pix, opts):
-    """The flag bits (module doc): 1 not converged, 2 at the field's edge, 4 R_e at a bound."""
+def _flags(fit, frame, pix, opts, unresolved):
+    """The flag bits (module doc; `inference.auto.FLAGS`); `unresolved`: σ(R_e) > R_e."""
+    from ..inference.auto import FLAGS
     flag = np.zeros(len(pix), int)
     if not fit.success:
-        flag |= 1
+        flag |= FLAGS["not_converged"]
     g0 = frame.grids[0]
     edge = (pix[:, 0] < 1) | (pix[:, 1] < 1) | (pix[:, 0] > g0.nx - 2) | (pix[:, 1] > g0.ny - 2)
-    flag |= np.where(edge, 2, 0)
+    flag |= np.where(edge, FLAGS["position_at_box_edge"], 0)
     r_obs = np.asarray(fit.state.source.clumps.re_arcsec, float)
     at_bound = (r_obs < 1.02 * opts.clump_re_min_arcsec) | (r_obs > 0.98 * opts.clump_re_max_arcsec)
-    flag |= np.where(at_bound, 4, 0)
+    flag |= np.where(at_bound, FLAGS["re_at_bound"], 0)
+    flag |= np.where(unresolved, FLAGS["size_unresolved"], 0)
     return flag
 
 
