@@ -4,20 +4,26 @@ For each seed: a catalogue of clumps (random positions around the host, magnitud
 spanning S/N ≈ 3–100, R_e 5–30 mas, q 0.5–1) and a scene (a Sérsic host by magnitude,
 one NIRCam F200W band with a Gaussian PSF file) are written; `clumpylen simulate` makes
 the image; `clumpylen fit SCENE --image F200W=... --out DIR` fits it with no catalogue
-(the scene's clumps are never read by fit). Scenes: "unlensed" and "sis" (the same
-source behind an SIS of θ_E = 1" near its caustic: an arc).
+(the scene's clumps are never read by fit). Scenes: "unlensed"; "sis" (the same source
+behind an SIS of θ_E = 1" near its caustic: an arc); "arc" (cosmic-archipelago's z = 6.145
+source plane behind its MACS0416-like cluster, every clump inside a fold caustic: two
+mirror images of each across the critical curve, |μ| ≈ 5–18 per image, 78 × 113 pixels).
 
 Truth matching: each true clump (brightest first) takes the nearest unmatched fitted
-clump within `MATCH_PIX` detector pixels (source plane: divided by √|μ| of the clump).
+clump within `MATCH_PIX` detector pixels in the image plane: the source-plane offset mapped
+by ∂θ/∂β at the true clump's most magnified image (`_image_maps`; a lens stretches one
+direction only, so one isotropic source-plane radius cannot stand for a pixel distance).
+The earlier rule (|Δβ| √|μ| within MATCH_PIX pixels) is reported beside it.
 Reported: recovered fraction vs the Fisher S/N of the true clump's flux
 (`detect.clump_detectability`, marginalised over every clump's flux, size and position)
 and vs flux and R_e; false clumps per scene (all, and with fitted S/N > 10); pulls
 (fit − true)/σ of flux, R_e and β; blends (fitted clumps with several true ones within
-the radius: flux bias). The outside check: at S/N > 10, ≥ 90 % recovered, |pull| < 3 for
-flux and size in ≥ 90 % of them, ≤ 1 false clump per scene with S/N > 10.
+twice the match distance: flux bias). The outside check: at S/N > 10, ≥ 90 % recovered,
+|pull| < 3 for flux and size in ≥ 90 % of them, ≤ 1 false clump per scene with S/N > 10.
 
-Run: .venv/bin/python benchmarks/bench_recovery.py [--seeds 4] [--scenes unlensed,sis]
-Writes benchmarks/results/recovery.{json,md}.
+Run: .venv/bin/python benchmarks/bench_recovery.py [--seeds 4] [--scenes unlensed,sis,arc]
+Writes benchmarks/results/recovery.{json,md} (`--name`). With `--keep DIR`, a seed whose fit
+is already in DIR (its fit_s.json written) is evaluated again without simulating or fitting.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import resource
 import tempfile
 import time
@@ -45,12 +52,13 @@ PIX = 0.031
 MATCH_PIX = 1.5
 N_CLUMPS = 6
 SNR_BINS = [0, 5, 10, 20, 1e9]
+RE_BINS_MAS = [5, 10, 20, 30]   # the catalogue's R_e range, 5–30 mas
 
 SCENE = """
 [scene]
 name = "recovery-{kind}-{seed}"
 seed = {seed}
-z_source = 2.0
+z_source = {z_source}
 
 [source]
 center_arcsec = {center}
@@ -68,7 +76,7 @@ catalog = "clumps.ecsv"
 [render]
 source_pixel_arcsec = 0.001
 lens_pixel_arcsec = 0.01
-field_arcsec = {{ x = [{lo}, {hi}], y = [{lo}, {hi}] }}
+field_arcsec = {{ x = [{x0}, {x1}], y = [{y0}, {y1}] }}
 accuracy = "fast"
 
 [[bands]]
@@ -90,11 +98,34 @@ z_lens = 0.5
 components = [ { kind = "sis", theta_e_arcsec = 1.0, center_arcsec = [0.0, 0.0] } ]
 """
 
+# cosmic-archipelago's lens (the built-in MACS0416-like cluster, its z_lens and centre)
+CLUSTER = """
+[lens]
+z_lens = 0.396
+center_radec_deg = [64.038142, -24.067472]
+model = "macs0416-like"
+"""
+
+# The arc: cosmic-archipelago's z = 6.145 source plane behind its cluster. Its source
+# centre (β = −13.7166, 3.6177) lies 8 mas inside a fold caustic of the lens
+# (`lensing.derived.caustics` of `builtin_lens("macs0416-like", 6.145)` on a 0.01" grid):
+# nearest caustic point β = (−13.7230, 3.6231), inward normal (0.2414, −0.9704), critical
+# point θ = (−35.635, 19.112). Clumps are placed inside that fold (local straight-line
+# caustic, 3 mas margin), 3–77 mas from it: each is imaged twice, on either side of the
+# critical curve, at |μ| ≈ 5–18 per image and 0.5–1.9" apart (`find_images`), the two
+# mirror images of the paper's arc. The field (2.4" × 3.5", 78 × 113 pixels, 0.86 of the SIS
+# field's count) holds both images of every clump; the third image (θ ≈ −36.9, 23.4) is
+# outside it, as in cosmic-archipelago's field.
+FOLD = ((-13.7230, 3.6231), (0.2414, -0.9704))
+
 KINDS = {
-    "unlensed": dict(center=[0.0, 0.0], host_mag=22.5, host_re=0.3, spread=0.35, half=0.9,
-                     mags=(24.5, 28.5), lens=""),
-    "sis": dict(center=[0.08, 0.03], host_mag=25.0, host_re=0.08, spread=0.08, half=1.6,
-                mags=(27.0, 31.0), lens=LENS),
+    "unlensed": dict(center=[0.0, 0.0], host_mag=22.5, host_re=0.3, spread=0.35,
+                     field=((-0.9, 0.9), (-0.9, 0.9)), mags=(24.5, 28.5), lens="", z_source=2.0),
+    "sis": dict(center=[0.08, 0.03], host_mag=25.0, host_re=0.08, spread=0.08,
+                field=((-1.6, 1.6), (-1.6, 1.6)), mags=(27.0, 31.0), lens=LENS, z_source=2.0),
+    "arc": dict(center=[-13.7145, 3.5891], host_mag=26.5, host_re=0.08, spread=0.035,
+                field=((-36.8, -34.4), (17.4, 20.9)), mags=(25.5, 29.5), lens=CLUSTER,
+                z_source=6.145, fold=FOLD),
 }
 
 
@@ -110,6 +141,8 @@ def _catalog(kind, seed, path):
     pos = []
     while len(pos) < N_CLUMPS:
         p = np.asarray(cfg["center"]) + rng.uniform(-cfg["spread"], cfg["spread"], 2)
+        if "fold" in cfg and np.dot(p - cfg["fold"][0], cfg["fold"][1]) < 0.003:
+            continue   # outside the fold: no image in the arc's field
         if all(np.hypot(*(p - q)) > 0.4 * cfg["spread"] for q in pos):
             pos.append(p)
     pos = np.array(pos)
@@ -120,24 +153,63 @@ def _catalog(kind, seed, path):
     t.write(path, format="ascii.ecsv", overwrite=True)
 
 
-def _truth_snr(scene_path):
-    """Fisher S/N of each true clump's flux (truth model: evaluation only)."""
+def _truth(scene_path):
+    """Fisher S/N of each true clump's flux (truth model: evaluation only), and the prepared
+    scene (its lens and field)."""
     from clumpylen_jax import scene as sc
     from clumpylen_jax.inference.detect import clump_detectability
     from clumpylen_jax.pipeline import prepare
     prep = prepare(sc.load_scene(scene_path))
-    return np.asarray(clump_detectability(prep.model, prep.source)["snr_flux_F200W"])
+    return np.asarray(clump_detectability(prep.model, prep.source)["snr_flux_F200W"]), prep
 
 
-def _match(true, fit, radius):
-    """Index of the matched fitted clump per true clump (−1: none), brightest first."""
+def _image_maps(prep, true):
+    """∂θ/∂β (2 × 2) per true clump at its most magnified image in the field: the map of a
+    source-plane offset to the image-plane offset that matching measures (identity unlensed).
+
+    A lens magnifies along one direction: the fold of the arc kind by 1/|λ_r| ≈ 7–15 along the
+    arc, and compresses by 1/|λ_t| ≈ 0.7 across it (the SIS: 1/λ_t ≈ 12 and 1). A source-plane
+    radius of MATCH_PIX pixels / √|μ| is then 3–4 pixels along the arc and 0.3 across it."""
+    from clumpylen_jax.lensing.derived import deflection_jacobian
+    from clumpylen_jax.lensing.images import find_images
+
+    if prep.lens is None:
+        return np.broadcast_to(np.eye(2), (len(true), 2, 2))
+    field = tuple(tuple(float(v) for v in r) for r in prep.field_arcsec)
+    out = []
+    for b1, b2 in zip(true["beta1_arcsec"], true["beta2_arcsec"]):
+        im = find_images(prep.lens, float(b1), float(b2), field=field, pixel_arcsec=PIX / 2)
+        valid = np.asarray(im.valid)
+        if not valid.any():   # no image in the field: nothing to match it to
+            out.append(np.full((2, 2), np.inf))
+            continue
+        k = int(np.argmax(np.where(valid, np.abs(np.asarray(im.magnification)), -1.0)))
+        a = np.reshape([float(x) for x in deflection_jacobian(prep.lens, im.theta1[k], im.theta2[k])], (2, 2))
+        out.append(np.linalg.inv(np.eye(2) - a))
+    return np.array(out)
+
+
+def _distances(true, fit, maps):
+    """(n_true, n_fit) image-plane distances in detector pixels, |∂θ/∂β · (β_fit − β_true)|,
+    and the isotropic source-plane ones |β_fit − β_true| · √max(|μ|, 1) (the rule of the runs
+    before 2026-11-26, kept for comparison)."""
+    db = np.stack([np.asarray(fit["beta1_arcsec"])[None, :] - np.asarray(true["beta1_arcsec"])[:, None],
+                   np.asarray(fit["beta2_arcsec"])[None, :] - np.asarray(true["beta2_arcsec"])[:, None]], -1)
+    with np.errstate(invalid="ignore"):   # inf map × 0 offset: no image, never matched
+        img = np.nan_to_num(np.hypot(*np.einsum("iab,ijb->aij", maps, db)), nan=np.inf) / PIX
+    mu = np.abs(np.asarray(true["magnification"])) if "magnification" in true.colnames else np.ones(len(true))
+    iso = np.hypot(db[..., 0], db[..., 1]) * np.sqrt(np.maximum(mu, 1.0))[:, None] / PIX
+    return img, iso
+
+
+def _match(true, dist):
+    """Index of the matched fitted clump per true clump (−1: none), brightest first: the
+    nearest unmatched one within MATCH_PIX (dist: (n_true, n_fit) in detector pixels)."""
     out = np.full(len(true), -1)
     used = set()
     for i in np.argsort(-np.asarray(true["flux"])):
-        d = np.hypot(fit["beta1_arcsec"] - true["beta1_arcsec"][i],
-                     fit["beta2_arcsec"] - true["beta2_arcsec"][i])
-        for j in np.argsort(d):
-            if d[j] > radius[i]:
+        for j in np.argsort(dist[i]):
+            if dist[i, j] > MATCH_PIX:
                 break
             if j not in used:
                 out[i] = j
@@ -146,34 +218,47 @@ def _match(true, fit, radius):
     return out
 
 
-def run_one(kind, seed, work: Path):
+def _simulate_and_fit(kind, seed, d: Path):
+    """Scene, image and fit in d; the fit's wall time, load and peak RSS in d/fit_s.json."""
     cfg = KINDS[kind]
-    d = work / f"{kind}-{seed}"
     d.mkdir(parents=True)
     _psf(d / "psf.fits")
     _catalog(kind, seed, d / "clumps.ecsv")
+    (x0, x1), (y0, y1) = cfg["field"]
     (d / "scene.toml").write_text(SCENE.format(kind=kind, seed=seed, center=cfg["center"],
-                                               host_mag=cfg["host_mag"], host_re=cfg["host_re"],
-                                               lens=cfg["lens"], lo=-cfg["half"], hi=cfg["half"],
-                                               pix=PIX))
+                                               z_source=cfg["z_source"], host_mag=cfg["host_mag"],
+                                               host_re=cfg["host_re"], lens=cfg["lens"],
+                                               x0=x0, x1=x1, y0=y0, y1=y1, pix=PIX))
     assert cli(["simulate", str(d / "scene.toml"), "--out", str(d / "run"), "-q"]) == 0
     t0 = time.perf_counter()
     assert cli(["fit", str(d / "scene.toml"), "--image", f"F200W={d}/run/bands/F200W.fits",
                 "--out", str(d / "fit"), "-q"]) == 0
-    fit_s = time.perf_counter() - t0
+    # the process's peak so far (simulate, fit and the earlier seeds' truth S/N run in it)
+    (d / "fit_s.json").write_text(json.dumps({
+        "fit_s": time.perf_counter() - t0, "load": os.getloadavg()[0],
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+
+
+def run_one(kind, seed, work: Path):
+    d = work / f"{kind}-{seed}"
+    if not (d / "fit_s.json").exists():   # a kept seed (--keep) is evaluated again, not refitted
+        _simulate_and_fit(kind, seed, d)
+    timing = json.loads((d / "fit_s.json").read_text())
     zp = fits.getheader(d / "run/bands/F200W.fits")["ZP_AB"]
     true = Table.read(d / "run/catalog.ecsv")
     true["flux"] = 10 ** (-0.4 * (np.asarray(true["mag_F200W"]) - zp))
-    true["snr"] = _truth_snr(d / "scene.toml")
+    snr, prep = _truth(d / "scene.toml")
+    true["snr"] = snr
     fit = Table.read(d / "fit/fit.ecsv")
-    mu = np.abs(np.asarray(true["magnification"])) if "magnification" in true.colnames else 1.0
-    radius = MATCH_PIX * PIX / np.sqrt(np.broadcast_to(np.maximum(mu, 1.0), (len(true),)))
-    m = _match(true, fit, radius)
+    dist, dist_iso = _distances(true, fit, _image_maps(prep, true))
+    m = _match(true, dist)
+    m_iso = _match(true, dist_iso)
     rows = []
     for i, j in enumerate(m):
         q = float(true["q"][i])
         r = {"snr": float(true["snr"][i]), "flux": float(true["flux"][i]),
-             "re_arcsec": float(true["re_arcsec"][i]), "q": q, "recovered": bool(j >= 0)}
+             "re_arcsec": float(true["re_arcsec"][i]), "q": q, "recovered": bool(j >= 0),
+             "recovered_iso": bool(m_iso[i] >= 0)}
         if j >= 0:
             f = fit[j]
             # a round fitted clump's R_e estimates the circularised R_e·√q of an elliptical
@@ -182,6 +267,7 @@ def run_one(kind, seed, work: Path):
             qf = float(f["q"]) if "q" in fit.colnames else 1.0
             r.update(fit_flux=float(f["flux_F200W"]), fit_flux_err=float(f["flux_F200W_err"]),
                      fit_re_arcsec=float(f["re_arcsec"]), fit_re_err=float(f["re_arcsec_err"]),
+                     offset_pix=float(dist[i, j]),
                      pull_flux=float((f["flux_F200W"] - r["flux"]) / f["flux_F200W_err"]),
                      pull_re=float((f["re_arcsec"] - r["re_arcsec"]) / f["re_arcsec_err"]),
                      pull_re_circ=float((f["re_arcsec"] * np.sqrt(qf) - r["re_arcsec"] * np.sqrt(q))
@@ -192,16 +278,14 @@ def run_one(kind, seed, work: Path):
         rows.append(r)
     unmatched = [j for j in range(len(fit)) if j not in set(m.tolist())]
     fit_snr = np.asarray(fit["flux_F200W"]) / np.asarray(fit["flux_F200W_err"])
-    near = [int(np.sum(np.hypot(true["beta1_arcsec"] - f["beta1_arcsec"],
-                                true["beta2_arcsec"] - f["beta2_arcsec"]) < 2 * radius.max()))
-            for f in fit]
-    blends = [{"n_true": near[j], "flux_ratio": float(fit["flux_F200W"][j] / np.sum(
-        true["flux"][np.hypot(true["beta1_arcsec"] - fit["beta1_arcsec"][j],
-                              true["beta2_arcsec"] - fit["beta2_arcsec"][j]) < 2 * radius.max()]))}
-              for j in range(len(fit)) if near[j] > 1]
-    return {"kind": kind, "seed": seed, "fit_s": fit_s, "clumps": rows, "n_fit": len(fit),
+    # a blend: a fitted clump with several true ones within twice the match distance
+    near = dist < 2 * MATCH_PIX
+    blends = [{"n_true": int(near[:, j].sum()),
+               "flux_ratio": float(fit["flux_F200W"][j] / np.sum(true["flux"][near[:, j]]))}
+              for j in range(len(fit)) if near[:, j].sum() > 1]
+    return {"kind": kind, "seed": seed, "clumps": rows, "n_fit": len(fit), **timing,
             "false": len(unmatched), "false_snr10": int(np.sum(fit_snr[unmatched] > 10)) if unmatched else 0,
-            "blends": blends}
+            "false_iso": int(len(fit) - np.sum(m_iso >= 0)), "blends": blends}
 
 
 def summarise(results):
@@ -213,9 +297,17 @@ def summarise(results):
         sel = (snr >= lo) & (snr < hi)
         out["bins"].append({"snr": [lo, hi], "n": int(sel.sum()),
                             "recovered": float(rec[sel].mean()) if sel.any() else None})
+    # by size, at S/N > 10 (fainter ones are missed whatever their size)
+    re_mas = np.array([1e3 * c["re_arcsec"] for c in clumps])
+    out["re_bins"] = []
+    for lo, hi in zip(RE_BINS_MAS[:-1], RE_BINS_MAS[1:]):
+        sel = (re_mas >= lo) & (re_mas < hi) & (snr > 10)
+        out["re_bins"].append({"re_mas": [lo, hi], "n": int(sel.sum()),
+                               "recovered": float(rec[sel].mean()) if sel.any() else None})
     hi = [c for c in clumps if c["snr"] > 10 and c["recovered"]]
-    out["snr_gt10_recovered"] = float(np.mean([c["recovered"] for c in clumps if c["snr"] > 10])) \
-        if any(c["snr"] > 10 for c in clumps) else None
+    for key in ("recovered", "recovered_iso"):
+        out[f"snr_gt10_{key}"] = float(np.mean([c[key] for c in clumps if c["snr"] > 10])) \
+            if any(c["snr"] > 10 for c in clumps) else None
     for p in ("flux", "re", "re_circ", "beta1", "beta2"):
         v = np.array([c[f"pull_{p}"] for c in hi if f"pull_{p}" in c])   # NaN counts as > 3
         out[f"pull_{p}_within3"] = float(np.mean(np.abs(v) < 3)) if v.size else None
@@ -223,6 +315,7 @@ def summarise(results):
     out["converged"] = float(np.mean([(c["flag"] & 1) == 0 for c in clumps if c["recovered"]])) \
         if any(c["recovered"] for c in clumps) else None
     out["false_per_scene"] = float(np.mean([r["false"] for r in results]))
+    out["false_iso_per_scene"] = float(np.mean([r["false_iso"] for r in results]))
     out["false_snr10_per_scene"] = float(np.mean([r["false_snr10"] for r in results]))
     out["max_false_snr10"] = int(max(r["false_snr10"] for r in results))
     return out
@@ -257,7 +350,11 @@ def _write(results, kinds, n_seeds, wall_s, name="recovery"):
         lines += [f"## {k}", "", "| Fisher S/N | clumps | recovered |", "|---|---|---|"]
         lines += [f"| {b['snr'][0]}-{b['snr'][1] if b['snr'][1] < 1e8 else 'inf'} | {b['n']} | "
                   f"{_fmt(b['recovered'])} |" for b in s["bins"]]
-        lines += ["", f"S/N > 10: recovered {_fmt(s['snr_gt10_recovered'])}; |pull| < 3: flux "
+        lines += ["", "| R_e mas (S/N > 10) | clumps | recovered |", "|---|---|---|"]
+        lines += [f"| {b['re_mas'][0]}-{b['re_mas'][1]} | {b['n']} | {_fmt(b['recovered'])} |"
+                  for b in s["re_bins"]]
+        lines += ["", f"S/N > 10: recovered {_fmt(s['snr_gt10_recovered'])} (isotropic "
+                  f"√|μ| rule: {_fmt(s['snr_gt10_recovered_iso'])}); |pull| < 3: flux "
                   f"{_fmt(s['pull_flux_within3'])}, R_e {_fmt(s['pull_re_within3'])} "
                   f"(circularised R_e√q: {_fmt(s['pull_re_circ_within3'])}), "
                   f"β1 {_fmt(s['pull_beta1_within3'])}, β2 {_fmt(s['pull_beta2_within3'])}; "
@@ -265,14 +362,13 @@ def _write(results, kinds, n_seeds, wall_s, name="recovery"):
                   f"(R_e√q {_fmt(s['pull_re_circ_median'])}); converged (flag bit 1 clear) "
                   f"{_fmt(s['converged'])}; "
                   f"false clumps per scene {s['false_per_scene']:.2f} "
-                  f"(S/N > 10: {s['false_snr10_per_scene']:.2f}, max {s['max_false_snr10']})", ""]
+                  f"(S/N > 10: {s['false_snr10_per_scene']:.2f}, max {s['max_false_snr10']}; "
+                  f"isotropic rule: {s['false_iso_per_scene']:.2f})", ""]
     (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
     return lines
 
 
 def main():
-    import os
-
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--first-seed", type=int, default=0)
@@ -288,9 +384,6 @@ def main():
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for kind in kinds:
                 r = run_one(kind, seed, Path(tmp))
-                r["load"] = os.getloadavg()[0]
-                # the process's peak so far (simulate, fit and the truth S/N run in it)
-                r["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
                 results.append(r)
                 print(kind, seed, f"fit {r['fit_s']:.0f} s (load {r['load']:.1f}), found {r['n_fit']}, "
                       f"false {r['false']} (S/N>10: {r['false_snr10']}), recovered "
