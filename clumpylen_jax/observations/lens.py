@@ -10,9 +10,10 @@ fit's θ frame: West, North, from the first observation's centre):
   the fit frame to the lens's θ frame (origin the lens centre). β = θ_L − α(θ_L),
   A = I − ∂α/∂θ_L: forward-mode derivatives of an analytic deflection (exact); for a map,
   central differences over one map pixel (second order, where the bilinear interpolant's
-  own derivative is piecewise constant: first order, off by ~h |∂²α| / 2). The fit frame and the lens frame are
-  both gnomonic West/North frames; over a cluster field (arcminutes) their relative rotation is
-  ~1e-4 rad, below what a clump's position angle is measured to, so A is used as it is.
+  own derivative is piecewise constant: first order, off by ~h |∂²α| / 2). The fit frame
+  and the lens frame are both gnomonic West/North frames; over a cluster field (arcminutes)
+  their relative rotation is ~1e-4 rad, below what a clump's position angle is measured
+  to, so A is used as it is.
 
 `place_lens` builds it, and checks before any fit that a map covers every corner of the
 cutout with finite deflections: a cutout off the map is a ConfigError naming the setting.
@@ -49,8 +50,8 @@ def local_source_plane(lens: LocalLens, theta) -> SourcePlane:
 @dataclasses.dataclass(frozen=True)
 class PlacedLens:
     """A lens model and the way from the fit's θ to the lens's θ_L (arcsec): through the sky
-    (`radec_center`: RA, Dec of the fit frame's origin, and the lens centre `lens_radec`), or a
-    shift (`offset_arcsec`: θ_L of the fit frame's origin)."""
+    (`radec_center`: RA, Dec of the fit frame's origin; the lens centre is the model's
+    `center_radec_deg`), or a shift (`offset_arcsec`: θ_L of the fit frame's origin)."""
 
     lens: object
     model: LensModel
