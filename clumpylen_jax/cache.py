@@ -17,6 +17,9 @@ One folder: ``$CLUMPYLEN_CACHE`` if set, else ``~/.cache/clumpylen_jax``. Inside
 - ``light/``: the host's light per unit flux on the run's grids and traced pixels
   (`lightcache`; ~150 MB for the paper scene, the last few kept).
 
+``programs/hints/`` lists the programs a scene's last run used, so that the next run
+reads them ahead (`programcache.ReadAhead`).
+
 ``programs/``, ``models/`` and ``light/`` are keyed on the source of every module of the package,
 its version and the jax/jaxlib versions (besides their own inputs): a new release or
 any edit of the code starts them over.
@@ -67,3 +70,17 @@ def enable_compilation_cache(enabled: bool | None = None, folder=None) -> Path |
     # JAX settles on a cache (or none) at its first compilation: start that over
     compilation_cache.reset_cache()
     return folder
+
+
+def read_ahead(scene):
+    """A `programcache.ReadAhead` of the programs a run of `scene` (a resolved Scene, its
+    overrides applied) used last time, hinted by the scene's resolved settings; None with
+    the cache off. Start it as early as a run knows its scene."""
+    if not cache_enabled():
+        return None
+    import json
+
+    from . import scene as scene_mod
+    from .programcache import ReadAhead
+    hint = json.dumps(scene_mod.resolved_dict(scene), sort_keys=True, default=str)
+    return ReadAhead(cache_root() / "programs", hint)

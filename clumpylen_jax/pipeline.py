@@ -24,7 +24,7 @@ import numpy as np
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, modelcache, photometry
 from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .builders import model_band
-from .cache import cache_enabled, cache_root
+from .cache import cache_enabled, cache_root, read_ahead
 from .errors import ConfigError
 from .model.renderer import first_band_per_subgrid
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
@@ -87,6 +87,7 @@ class Prepared:
     dtype: object
     host_masses_msun: dict
     timings: dict
+    programs: object = None         # programs folder, a programcache.ReadAhead of it, or None
 
 
 def _cosmology(scene):
@@ -190,12 +191,12 @@ def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
     return mags
 
 
-def _chunked_calls(name, fun, baked, chunk=1 << 16):
+def _chunked_calls(programs, name, fun, baked, chunk=1 << 16):
     """A numpy function (x, y) -> fun(baked, x, y), evaluated in zero-padded chunks of one
     shape by one program (`programcache.function`), loaded or compiled once."""
     from . import programcache
     pad = jnp.zeros(chunk, jnp.float64)
-    fn = programcache.function(name, fun, pad, pad, folder=_program_folder(), baked=baked)
+    fn = programcache.function(name, fun, pad, pad, folder=programs, baked=baked)
 
     def call(x, y):
         x = np.asarray(x, float)
@@ -218,7 +219,7 @@ def _disk_brightness(baked, x, y):
     return render.disk_unit_brightness(disk, x, y, mean)
 
 
-def _sample_catalog(scene, bulge, disk, cosmology):
+def _sample_catalog(scene, bulge, disk, cosmology, programs):
     """The clump catalogue (astropy Table) and the host masses left after clumps."""
     from . import population
     src = scene.source
@@ -245,13 +246,13 @@ def _sample_catalog(scene, bulge, disk, cosmology):
     # them. The host's arrays are baked into the brightness, as a jit's closure has them.
     if host_name == "disk":
         # one compiled quadrature, not hundreds of op-by-op dispatches
-        mean = _program("population.disk_modulation_mean", render.disk_modulation_mean,
+        mean = _program(programs, "population.disk_modulation_mean", render.disk_modulation_mean,
                         host_tree)
-        brightness = _chunked_calls("population.disk_brightness", _disk_brightness,
+        brightness = _chunked_calls(programs, "population.disk_brightness", _disk_brightness,
                                     (host_tree, mean))
         geo = host_tree.sersic
     else:
-        brightness = _chunked_calls("population.sersic_brightness",
+        brightness = _chunked_calls(programs, "population.sersic_brightness",
                                     render.sersic_component_brightness, host_tree)
         geo = host_tree
     radius = float(profiles.sersic_radius_enclosing_np(0.999, geo.re_arcsec, geo.n))
@@ -323,12 +324,12 @@ def _field(scene, lens, source, accuracy):
                              pixel_arcsec=0.25, margin_arcsec=0.5)
 
 
-def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress):
+def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, programs):
     """The clump catalogue, the host masses left after clumps and the source with its
     fluxes per band."""
     bulge_t, disk_t = _host_pytrees(scene, jnp.float64)
     with progress.stage("population"):
-        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology)
+        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology, programs)
     with progress.stage("photometry"):
         src = scene.source
         bulge = disk = clumps = None
@@ -356,9 +357,14 @@ def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress):
     return table, host_masses, source
 
 
-def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> Prepared:
-    """Population, photometry, lens, PSFs and the model of a scene (no rendering yet)."""
+def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
+            programs=None) -> Prepared:
+    """Population, photometry, lens, PSFs and the model of a scene (no rendering yet).
+
+    programs: where compiled programs are kept (`programcache`: a folder or a `ReadAhead`
+    of it); None: the cache folder's programs/ unless the cache is off."""
     progress = progress or _Progress(False, 1)
+    programs = _program_folder() if programs is None else programs
     model_mod.require_float64_mode(scene.render.dtype)
     cosmology = _cosmology(scene)
     accuracy = _accuracy(scene)
@@ -371,8 +377,8 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
     # photometry (mostly XLA compiling, which leaves the GIL): on 2 cores the two overlap.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-psf") as pool:
         later_bands = pool.submit(_bands_stage, scene, accuracy, progress)
-        table, host_masses, source = _population_and_photometry(scene, filters, zps,
-                                                                cosmology, dtype, progress)
+        table, host_masses, source = _population_and_photometry(scene, filters, zps, cosmology,
+                                                                dtype, progress, programs)
         with progress.stage("bands and PSFs (wait)"):
             bands = later_bands.result()
     with progress.stage("lens"):
@@ -389,7 +395,7 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None) -> 
             field_arcsec=field, lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
             source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
-                    host_masses, progress.timings)
+                    host_masses, progress.timings, programs)
 
 
 # ------------------------------------------------------------------ running and writing
@@ -399,14 +405,14 @@ def _program_folder():
     return cache_root() / "programs" if cache_enabled() else None
 
 
-def _program(name: str, fun, *args):
+def _program(programs, name: str, fun, *args):
     """fun(*args) as one program (arrays traced, every other leaf static); its executable
-    kept between runs in the cache folder (`programcache`) unless it is off."""
+    kept between runs in `programs` (`programcache`: a folder, a `ReadAhead`, or None)."""
     from . import programcache
-    return programcache.call(name, fun, *args, folder=_program_folder())
+    return programcache.call(name, fun, *args, folder=programs)
 
 
-def _with_host_light(model, source: Source):
+def _with_host_light(programs, model, source: Source):
     """The model with its host's light per unit flux held (`SceneModel.with_host_light`):
     computed by a program of its own, or read back from the cache folder (`lightcache`:
     it depends on the host's geometry and the grids only). A source without host: the
@@ -416,7 +422,7 @@ def _with_host_light(model, source: Source):
     # what the light depends on, and no more (the key hashes every array it is given):
     # the host renderer (the traced pixels), the sub-grids and the host
     subgrids = tuple(first_band_per_subgrid(model.layouts).items())
-    units = _kept_light("host_unit_light", _host_unit_light, model.hosts, subgrids,
+    units = _kept_light(programs, "host_unit_light", _host_unit_light, model.hosts, subgrids,
                         Source(source.bulge, source.disk, None))
     return model.with_host_light(units)
 
@@ -425,17 +431,18 @@ def _host_unit_light(hosts, subgrids, source: Source):
     return hosts.unit_light(source, dict(subgrids))
 
 
-def _kept_light(name: str, fun, *args):
+def _kept_light(programs, name: str, fun, *args):
     """fun(*args) (light per unit flux) as one program, kept between runs in the cache
     folder (`lightcache`) unless it is off."""
     from . import lightcache
     folder = cache_root() / "light" if cache_enabled() else None
-    return lightcache.kept(name, lambda: _program(name, fun, *args), args, folder)
+    return lightcache.kept(name, lambda: _program(programs, name, fun, *args), args, folder)
 
 
-def _jit_call(model, method: str, *args):
+def _jit_call(programs, model, method: str, *args):
     """Compile and call a SceneModel method (the model's arrays are traced, not hashed)."""
-    return _program(f"SceneModel.{method}", lambda m, *a: getattr(m, method)(*a), model, *args)
+    return _program(programs, f"SceneModel.{method}", lambda m, *a: getattr(m, method)(*a),
+                    model, *args)
 
 
 def _wcs_for(grid, scene):
@@ -471,22 +478,26 @@ def _rgb_channels(images, grids, triple):
     return out
 
 
-def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True) -> dict:
+def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True,
+             programs=None) -> dict:
     """Simulate `scene` (a Scene, a built-in name or a path) and write SCENE.md's outputs in out_dir.
 
     The run is written aside and swapped into out_dir whole, with a manifest.json
     (`rundir.run_directory`): no file of an earlier or interrupted run is left beside it.
+    programs: a `programcache.ReadAhead` started earlier for this scene (`cache.read_ahead`;
+    the command line starts it before its imports); None: started here.
     Returns the summary (also written to summary.json).
     """
     with rundir.run_directory(out_dir) as run:
         summary = _simulate_into(scene, run.path, bands=bands, seed=seed, noise=noise,
-                                 progress=progress)
+                                 progress=progress, programs=programs)
         run.meta.update(seed=summary["seed"], scene=summary["scene"]["scene"]["name"],
                         version=__version__)
     return summary
 
 
-def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True) -> dict:
+def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True,
+                   programs=None) -> dict:
     """`simulate` into a directory of its own (the run directory's temporary sibling)."""
     if not isinstance(scene, scene_mod.Scene):
         scene = scene_mod.load_scene(scene)
@@ -495,7 +506,9 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     n_stages = 7 + len(scene.bands) + 9
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
-    prep = prepare(scene, progress=prog)
+    if programs is None:
+        programs = read_ahead(scene)
+    prep = prepare(scene, progress=prog, programs=programs)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bands").mkdir(exist_ok=True)
     # The programs after the band render (unlensed bands, high-resolution images, clump
@@ -523,13 +536,14 @@ def _launch_unlensed(prep: Prepared, prog: _Progress):
             model_mod.build_model, prep.source, prep.bands, lens=None,
             folder=cache_root() / "models" if cache_enabled() else None,
             accuracy=prep.accuracy, dtype=prep.dtype)
-        return unl_model, _jit_call(_with_host_light(unl_model, prep.source), 'band_images',
-                                    prep.source)
+        return unl_model, _jit_call(prep.programs,
+                                    _with_host_light(prep.programs, unl_model, prep.source),
+                                    'band_images', prep.source)
 
 
 def _launch_magnifications(prep: Prepared, prog: _Progress):
     with prog.stage("catalogue (launch)"):
-        return _jit_call(prep.model, 'clump_magnifications', prep.source)
+        return _jit_call(prep.programs, prep.model, 'clump_magnifications', prep.source)
 
 
 def _write_hr_unlensed_stage(prep, prog, out, hr, later_hr):
@@ -591,6 +605,9 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     summary["timings_split_s"] = prog.clock.split()
     summary["accuracy"] = dataclasses.asdict(prep.accuracy)
     io.write_json(out / "summary.json", summary)
+    from .programcache import ReadAhead
+    if isinstance(prep.programs, ReadAhead):    # the next run reads these programs ahead
+        prep.programs.remember()
     return summary
 
 
@@ -612,9 +629,9 @@ def _render_bands(prep: Prepared, hr):
     # the high-resolution lens plane comes from the band render's own program: the host's
     # light at the traced pixels (per unit flux) and the rays are computed once for both
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
-    bands_out, hr_lensed = _program("SceneModel.band_render", _band_render,
-                                    _with_host_light(model, prep.source), prep.source, key,
-                                    hr_fluxes)
+    bands_out, hr_lensed = _program(prep.programs, "SceneModel.band_render", _band_render,
+                                    _with_host_light(prep.programs, model, prep.source),
+                                    prep.source, key, hr_fluxes)
     if scene.output.noise:
         noisy, clean, var = bands_out
     else:
@@ -762,10 +779,10 @@ def _hr_source_plane(prep: Prepared, mono):
     groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
     host = (None, None)
     if mono.bulge is not None or mono.disk is not None:
-        host = _kept_light("source_plane_host_light", _source_plane_host_light,
+        host = _kept_light(prep.programs, "source_plane_host_light", _source_plane_host_light,
                            Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy)
-    return sgrid, _program("source_plane_images", _source_plane_images, mono, host, sgrid,
-                           prep.accuracy, groups)
+    return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
+                           host, sgrid, prep.accuracy, groups)
 
 
 def _write_hr_set(prep: Prepared, out: Path, hr, images, grid, lensed: bool, **composite):

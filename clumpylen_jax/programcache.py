@@ -31,6 +31,13 @@ for bit the same in each case. A stored program is compiled with JAX's persisten
 off where JAX's cache held it (`_compile_own`), and a stored one that fails its first call
 is compiled again. `function` gives the same program as a function, loaded or compiled
 once for many calls of one shape.
+
+Reading ahead (`ReadAhead`): a run that asks for the same programs as the last run with
+the same hint (e.g. the same resolved scene) finds them loaded already. The files that
+run used are listed under ``<cache>/programs/hints/``; the next run starts loading them
+in a background thread (XLA releases the GIL while it links one) as soon as it knows its
+hint, before it has imported, prepared or traced anything. A program is still looked
+up by its own key: a stale list costs only the loading of files the run does not use.
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ import pickle
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import equinox as eqx
@@ -131,12 +139,66 @@ def _as_key_data(leaf):
     return leaf, None
 
 
+class ReadAhead:
+    """Executables of `folder` loaded in a background thread before the run asks for them.
+
+    folder: the programs folder.  hint: names the list of files (any string, e.g. a hash
+    of the resolved scene); the files are those the last `remember` with that hint
+    recorded, loaded in the order that run used them. A program asked for before its
+    turn is loaded by the thread that asks. `remember` records this run's files.
+    """
+
+    def __init__(self, folder, hint: str):
+        self.folder = Path(folder)
+        self._list = self.folder / "hints" / f"{hashlib.sha256(hint.encode()).hexdigest()[:40]}.txt"
+        try:
+            self._listed = self._list.read_text().split()
+        except OSError:
+            self._listed = []
+        self._used = []
+        self._ahead = {}
+        if self._listed:
+            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-read-ahead")
+            self._ahead = {n: pool.submit(_load, self.folder / n, False) for n in self._listed}
+            pool.shutdown(wait=False)
+
+    def load(self, path: Path):
+        """The executable at path (read ahead, or loaded now), or None; the wait for one
+        being read ahead is reported as a compilation span, as `_load` does."""
+        self._used.append(path.name)
+        later = self._ahead.pop(path.name, None)
+        if later is None or later.cancel():     # not read ahead, or not begun: load it here
+            return _load(path)
+        start = time.time()
+        compiled = later.result()
+        monitoring.record_event_time_span("/jax/core/compile/backend_compile_duration",
+                                          start, time.time())
+        return compiled
+
+    def remember(self) -> None:
+        """Record the files this run used, for the next run with the same hint."""
+        used = list(dict.fromkeys(self._used))
+        if used and used != self._listed:
+            self._list.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_write(self._list, "w") as fh:
+                fh.write("\n".join(used) + "\n")
+
+
+def _folder_and_reader(folder):
+    """(the programs folder or None, a function path → executable or None) of `folder`:
+    a path (or None) or a `ReadAhead`."""
+    if isinstance(folder, ReadAhead):
+        return folder.folder, folder.load
+    return folder, _load
+
+
 def call(name: str, fun, *args, folder=None, baked=None):
     """`fun(*args)` compiled as one program, its executable read from / written to `folder`.
 
     name: identifies `fun` (part of the key: two functions must not share a name).
     args: pytrees (equinox Modules included); arrays are the program's inputs, every
-    other leaf is static (baked in). folder None: compiled here, nothing read or written.
+    other leaf is static (baked in). folder: the programs folder, or a `ReadAhead` of it;
+    None: compiled here, nothing read or written.
     baked: a pytree given to `fun` as its first argument whose arrays, too, are constants
     of the program (part of the key by their bytes), as those a jitted closure captures:
     XLA folds them as it does there, so that the values are those of such a jit.
@@ -173,6 +235,7 @@ def _program(name, fun, args, folder, baked):
 
     specs = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
     key = program_key(name, leaves, tree, (static, [str(i) for i in impls], baked))
+    folder, read = _folder_and_reader(folder)
     path = None if folder is None or key is None else Path(folder) / f"{name}-{key[:40]}.jaxexec"
 
     def compile_():
@@ -187,7 +250,7 @@ def _program(name, fun, args, folder, baked):
         _store(compiled, path)
         return compiled
 
-    return _Program(_load(path), compile_), leaves
+    return _Program(None if path is None else read(path), compile_), leaves
 
 
 class _Program:
@@ -257,11 +320,12 @@ def _store(compiled, path):
         fh.write(blob)
 
 
-def _load(path):
+def _load(path, report: bool = True):
     """The executable stored at path, or None (absent or unreadable: compiled again).
 
-    Its loading is reported to `jax.monitoring` as a compilation span (as JAX reports a
-    load from its own cache), so that stage timings count it as compile time."""
+    With `report`, its loading is reported to `jax.monitoring` as a compilation span (as
+    JAX reports a load from its own cache), so that stage timings count it as compile
+    time (`ReadAhead` reports the wait for it instead)."""
     if path is None or not path.is_file():
         return None
     start = time.time()
@@ -269,6 +333,7 @@ def _load(path):
         compiled = serialize_executable.deserialize_and_load(*pickle.loads(path.read_bytes()))
     except Exception:       # a truncated or foreign file: compiled again and replaced
         return None
-    monitoring.record_event_time_span("/jax/core/compile/backend_compile_duration",
-                                      start, time.time())
+    if report:
+        monitoring.record_event_time_span("/jax/core/compile/backend_compile_duration",
+                                          start, time.time())
     return compiled

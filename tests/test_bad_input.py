@@ -243,6 +243,17 @@ def test_out_paths(capsys, tmp_path):
     assert (old / "bands").is_dir()
 
 
+def test_script_exit_status_and_message_survive_the_prompt_exit(tmp_path):
+    """The `clumpylen` script ends a simulate with os._exit (`cli.console`): its status
+    and its last words on stderr still come out."""
+    cli = Path(sys.executable).with_name("clumpylen")
+    run = subprocess.run([str(cli), "simulate", str(tmp_path / "none.toml"), "--out",
+                          str(tmp_path / "run")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2, run.stderr
+    assert "clumpylen: error" in run.stderr and "none.toml" in run.stderr
+    assert "Traceback" not in run.stderr and not (tmp_path / "run").exists()
+
+
 @pytest.mark.slow   # a subprocess importing JAX and compiling: 45 s on the shared host
 def test_sigint_midway_keeps_the_old_run(tmp_path):
     """A real `clumpylen simulate` interrupted once its temporary directory exists."""
@@ -414,32 +425,33 @@ def test_validate_reads_the_deflection_maps(capsys, tmp_path):
 
 
 def test_each_band_draws_its_noise_from_its_name(monkeypatch):
-    """The key SceneModel.observe hands each band's noise draw (cheap: images stubbed)."""
+    """A band's noise depends on its name and image only, not on the bands beside it:
+    bands of one shape are drawn by one sampler (`noise.add_photon_noise_bands`), alone
+    or together, in any order (cheap: noiseless images stubbed)."""
     import jax
     import jax.numpy as jnp
-    from clumpylen_jax import noise
     from clumpylen_jax.model import Band, SceneModel, build_model
     from clumpylen_jax.source import Sersic, Source
 
     monkeypatch.setattr(SceneModel, "band_images",
                         lambda self, s: tuple(jnp.full(lay.grid.shape, 5.0) for lay in self.layouts))
+    pixel = {"F150W": 0.1, "F200W": 0.1, "F444W": 0.2}
 
-    def keys(names):
+    def noisy(names):
         f = lambda x: jnp.asarray(x, jnp.float64)
         src = Source(bulge=Sersic(flux=f([50.0] * len(names)), re_arcsec=f(0.1), n=f(1.0),
                                   q=f(0.8), pa_rad=f(0.3), center_arcsec=f([0.0, 0.0])))
-        model = build_model(src, [Band(n, pixel_arcsec=0.1, exptime_s=100.0) for n in names],
+        model = build_model(src, [Band(n, pixel_arcsec=pixel[n], exptime_s=100.0) for n in names],
                             field_arcsec=((-0.5, 0.5), (-0.5, 0.5)))
-        seen = []
-        monkeypatch.setattr(noise, "add_photon_noise",
-                            lambda key, img, *a: seen.append(np.asarray(jax.random.key_data(key))) or img)
-        model.observe(src, jax.random.key(3))
-        return dict(zip(names, seen))
+        images = jax.jit(model.observe)(src, jax.random.key(3))[0]
+        return {n: np.asarray(x) for n, x in zip(names, images)}
 
-    both, alone, swapped = keys(["F150W", "F200W"]), keys(["F200W"]), keys(["F200W", "F150W"])
+    both, alone = noisy(["F150W", "F200W", "F444W"]), noisy(["F200W"])
+    swapped = noisy(["F444W", "F200W", "F150W"])
     assert np.array_equal(both["F200W"], alone["F200W"])
-    assert np.array_equal(both["F150W"], swapped["F150W"])
-    assert not np.array_equal(both["F150W"], both["F200W"])
+    for n in pixel:
+        assert np.array_equal(both[n], swapped[n])
+    assert not np.array_equal(both["F150W"], both["F200W"])      # same image, own key
 
 
 @pytest.mark.slow   # two compiles: 58-66 s on the shared host

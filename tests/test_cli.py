@@ -122,7 +122,8 @@ def fake_modules(monkeypatch):
     """Stand-ins for pipeline/plotting/analysis that record how they were called."""
     calls = {}
 
-    def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True):
+    def simulate(scene, out_dir, *, bands=None, seed=None, noise=None, progress=True,
+                 programs=None):
         calls["simulate"] = dict(scene=scene, out_dir=out_dir, bands=bands, seed=seed, noise=noise,
                                  progress=progress)
         return {"bands": {"F200W": {"total_counts_per_s": 12.5, "total_counts": 37500.0}},

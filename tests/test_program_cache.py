@@ -71,6 +71,33 @@ def test_unreadable_file_is_traced_again_and_replaced(tmp_path):
     assert path.read_bytes() != b"not a program"
 
 
+def test_read_ahead_loads_last_runs_programs_before_they_are_asked_for(monkeypatch, tmp_path):
+    """A run that `remember`s its programs: the next with the same hint reads them ahead
+    (loaded in its thread before the call, no tracing), another hint does not, and a
+    stale list (a file gone) costs nothing but a compile."""
+    want = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
+    first = programcache.ReadAhead(tmp_path, "scene A")
+    assert not first._ahead                     # nothing remembered yet
+    programcache.call("tiny", _render, *_args(), folder=first)
+    first.remember()
+    (listed,) = (tmp_path / "hints").glob("*.txt")
+    assert listed.read_text().split() == [p.name for p in tmp_path.glob("tiny-*.jaxexec")]
+
+    again = programcache.ReadAhead(tmp_path, "scene A")
+    (name,) = again._ahead
+    assert again._ahead[name].result() is not None          # loaded by the reading thread
+    with monkeypatch.context() as m:
+        _refuse_tracing(m)
+        got = np.asarray(programcache.call("tiny", _render, *_args(), folder=again))
+    assert got.tobytes() == want.tobytes() and not again._ahead
+    assert not programcache.ReadAhead(tmp_path, "scene B")._ahead
+
+    (tmp_path / name).unlink()
+    stale = programcache.ReadAhead(tmp_path, "scene A")
+    got = np.asarray(programcache.call("tiny", _render, *_args(), folder=stale))
+    assert got.tobytes() == want.tobytes() and (tmp_path / name).is_file()
+
+
 _IN_JAX_CACHE = """
 import sys, pathlib
 import jax, jax.numpy as jnp

@@ -12,7 +12,6 @@ import dataclasses
 from typing import Optional
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -111,9 +110,3 @@ class DetectorBand(eqx.Module):
     def variance(self, noiseless_image):
         """Poisson variance map of a noiseless image (with sky), (counts/s)²."""
         return noise.variance_map(noiseless_image, self.exptime_s)
-
-    def noisy(self, noiseless_image, key, gaussian_noise_above):
-        """A photon-noise realisation. The band's key comes from its filter name, not its
-        position: its noise is the same whichever other bands are simulated with it."""
-        return noise.add_photon_noise(jax.random.fold_in(key, noise.band_key(self.name)),
-                                      noiseless_image, self.exptime_s, gaussian_noise_above)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import defaults as D
-from .. import profiles, raycache
+from .. import noise, profiles, raycache
 from ..accuracy import Accuracy
 from ..errors import ConfigError, require
 from ..lensing import tracing
@@ -120,8 +120,9 @@ class SceneModel(eqx.Module):
     def observe(self, source: Source, key):
         """(noisy images, noiseless images, variances), one of each per band."""
         clean = self.noiseless(source)
-        noisy = tuple(det.noisy(img, key, self.accuracy.gaussian_noise_above)
-                      for img, det in zip(clean, self.layouts))
+        noisy = noise.add_photon_noise_bands(key, clean, [det.name for det in self.layouts],
+                                             [det.exptime_s for det in self.layouts],
+                                             self.accuracy.gaussian_noise_above)
         return noisy, clean, self.variances(clean)
 
     def lens_plane(self, source: Source):
