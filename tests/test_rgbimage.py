@@ -143,3 +143,31 @@ def test_lupton_stretch_is_astropys_bit_for_bit():
         assert got.shape == want.shape
         assert np.array_equal(got, want, equal_nan=True)
         assert np.array_equal(np.signbit(got), np.signbit(want))
+
+
+def test_large_frames_are_coloured_on_block_means_with_the_full_frames_stretch(monkeypatch, tmp_path):
+    """A frame f ≥ 2 times wider than drawn: block means shown, balance and stretch from its
+    every f-th pixel (so a clump's light does not set the top of the stretch f² times
+    over); shown=images is the plain call bit for bit."""
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[:1900, :1900]
+    host = np.exp(-np.hypot(xx - 950, yy - 950) / 200.0)
+    clumps = np.zeros_like(host)
+    clumps[rng.integers(0, 1900, 3600), rng.integers(0, 1900, 3600)] = 1e3   # 0.1 % of pixels
+    chans = [host + clumps, 0.8 * host + 2 * clumps, 0.5 * host + 4 * clumps]
+    assert np.array_equal(ri.rgb_array(*chans[:3], shown=chans), ri.rgb_array(*chans))
+
+    means, extent = ri._block_means(chans, (0.0, 19.0, -1.0, 18.0), 3)
+    assert means[0].shape == (633, 633) and np.allclose(extent, (0.0, 18.99, -1.0, 17.99))
+    assert np.isclose(means[1][10, 20], chans[1][30:33, 60:63].mean())
+
+    seen = {}
+    monkeypatch.setattr(ri, "save_sky_figure", lambda path, rgb, extent, **kw: seen.update(
+        rgb=rgb, extent=extent))
+    ri.save_composite(tmp_path / "x.png", chans, (0.0, 19.0, -1.0, 18.0))
+    assert seen["rgb"].shape == (633, 633, 3) and np.allclose(seen["extent"], extent)
+    # the host, away from clumps, as bright as in the full frame's colouring
+    full = ri.rgb_array(*chans)
+    assert np.allclose(seen["rgb"][300, 100], full[901, 301], rtol=0.05)
+    block_stretch = ri.rgb_array(*means)
+    assert block_stretch[300, 100].sum() < 0.7 * seen["rgb"][300, 100].sum()
