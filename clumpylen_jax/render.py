@@ -433,24 +433,25 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
     return out
 
 
-def scatter_stamps(stamps, i0, j0, weights, grid: Grid):
-    """Σ_k weights[k, c] × stamps[k] placed at (i0, j0): images [ny, nx, C] (channels last).
+def scatter_stamps(stamps, i0, j0, weights, grid: Grid, out=None):
+    """Σ_k weights[k, c] × stamps[k] placed at (i0, j0): images [ny, nx, C] (channels last),
+    added to `out` (default zeros).
 
     Channels last, so that one lookup of a pixel reads every band at once.
-    Parts of stamps that fall outside the grid are dropped.
+    Parts of stamps that fall outside the grid are dropped (scattered past its end, where
+    `mode="drop"` discards them: no padded copy of the grid is made, ~100 MB a stamp size
+    on a high-resolution lens plane).
     """
     n, s, _ = stamps.shape
-    nc = weights.shape[1]
     k = jnp.arange(s)
-    rows = jnp.broadcast_to(j0[:, None, None] + k[None, :, None] + s, (n, s, s))  # grid padded by s
-    cols = jnp.broadcast_to(i0[:, None, None] + k[None, None, :] + s, (n, s, s))
-    inside = (rows >= s) & (rows < grid.ny + s) & (cols >= s) & (cols < grid.nx + s)
-    rows = jnp.where(inside, rows, 0)
-    cols = jnp.where(inside, cols, 0)
-    vals = jnp.where(inside, stamps, 0.0)[..., None] * weights[:, None, None, :]  # [N, s, s, C]
-    out = jnp.zeros((grid.ny + 2 * s, grid.nx + 2 * s, nc), stamps.dtype)
-    out = out.at[rows, cols].add(vals)
-    return out[s:s + grid.ny, s:s + grid.nx]
+    rows = jnp.broadcast_to(j0[:, None, None] + k[None, :, None], (n, s, s))
+    cols = jnp.broadcast_to(i0[:, None, None] + k[None, None, :], (n, s, s))
+    inside = (rows >= 0) & (rows < grid.ny) & (cols >= 0) & (cols < grid.nx)
+    rows = jnp.where(inside, rows, grid.ny)     # past the end (a negative index would wrap)
+    vals = stamps[..., None] * weights[:, None, None, :]  # [N, s, s, C]
+    if out is None:
+        out = jnp.zeros((grid.ny, grid.nx, weights.shape[1]), stamps.dtype)
+    return out.at[rows, cols].add(vals, mode="drop")
 
 
 _STAMP_SIDES = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512)
@@ -518,11 +519,12 @@ def grouped_stamps(clumps: Clumps, grid: Grid, groups, *, order: int = 3, core: 
 
 
 def scatter_grouped(stamps, weights, grid: Grid):
-    """Σ over the `grouped_stamps` of weights[k, c] × stamp k: images [ny, nx, C]."""
-    out = 0.0
+    """Σ over the `grouped_stamps` of weights[k, c] × stamp k: images [ny, nx, C] (one
+    image that every group is added to)."""
+    out = None
     for st, i0, j0, idx in stamps:
-        out = out + scatter_stamps(st, i0, j0, weights[idx], grid)
-    return out
+        out = scatter_stamps(st, i0, j0, weights[idx], grid, out)
+    return 0.0 if out is None else out
 
 
 def clumps_image(clumps: Clumps, grid: Grid, groups, weights, *, order: int = 3, core: int = 5,

@@ -20,7 +20,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
 from ..pixels import Grid
@@ -113,6 +112,8 @@ class FootprintIndex:
     lens centre) do not widen every query. Built once, queried by `pixels_near`."""
 
     def __init__(self, m1, m2, reach):
+        from scipy.spatial import cKDTree   # build time only: not imported by a warm run
+
         self.m1, self.m2, self.reach = m1, m2, reach
         level = np.floor(np.log2(np.maximum(reach, 1e-300))).astype(int)
         self.levels = []
