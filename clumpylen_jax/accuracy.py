@@ -67,6 +67,7 @@ class Accuracy:
     gaussian_noise_above: float | None = 1.0e4
     host_subsampling: bool = False
     clump_pixels: str = "sersic"
+    ray_footprint: bool = False
 
     def validate(self, name="render.accuracy"):
         for key in ("lens_subsampling", "source_order", "psf_oversampling"):
@@ -81,6 +82,8 @@ class Accuracy:
                 self.source_mode, " or ".join(f'"{m}"' for m in SOURCE_MODES))
         require(self.clump_pixels in CLUMP_PIXELS, f"{name}.clump_pixels", self.clump_pixels,
                 " or ".join(f'"{m}"' for m in CLUMP_PIXELS))
+        require(isinstance(self.ray_footprint, (bool, np.bool_)), f"{name}.ray_footprint",
+                self.ray_footprint, "true or false")
         require(np.isfinite(self.linearise_tolerance) and self.linearise_tolerance >= 0,
                 f"{name}.linearise_tolerance", self.linearise_tolerance, "a fraction ≥ 0")
         for key in ("stamp_flux_fraction", "source_flux_fraction"):
