@@ -525,3 +525,30 @@ def test_profile_raises_errors_keeps_fisher_ones_and_flags_a_degenerate_shape():
     assert t["re_arcsec_err"][1] == pytest.approx(1e-3) and t["flux_X_err"][1] == 0.05
     assert t["re_arcsec_err"][2] == 1e-3
     assert flag.tolist() == [auto.FLAGS["shape_degenerate"], 0, 0]
+
+
+@pytest.mark.slow
+def test_profile_refits_hold_r_e_and_do_not_beat_the_optimum():
+    """_profile on a fitted elliptical clump: each refit keeps R_e exactly at its trial value
+    (the held entry is not solved), none beats the optimum beyond the LM tolerance, and the
+    flux changes are finite. Slow: the moves' compiled LM solve (as `test_merge_move_joins_a_split_elongated_clump_not_two_clumps`)."""
+    elong = Clumps(jnp.array([[0.0, 0.05]]), jnp.array([[20.0]]), jnp.array([0.06]),
+                   jnp.full(1, 0.5), jnp.array([0.5]), jnp.array([0.3]))
+    data, var = _observe(Source(bulge=HOST, clumps=elong), 5)
+    opts = AutoOptions(max_clumps=3, n_starts=2, re_max_arcsec=4 * PIX).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    u = auto._set_clump(ctx, u, 0, [0.005, 0.045], [15.0], 0.05, 0.6, 0.2)
+    active = np.array([1.0, 0.0, 0.0])
+    ctx.shaped = np.array([True, False, False])
+    us, lnl, _, _ = auto._fit_local(ctx, u[None], [[0, 1, 2]], active[None])
+    u, lnl = us[0], float(lnl[0])
+    re0 = float(ctx.param.state(jnp.asarray(u)).source.clumps.re_arcsec[0])
+    prof = auto._profile(ctx, u, lnl, active)
+    d_re, d_flux, d_lnl = prof[0]
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    want = [r - re0 for r, _, _ in auto.re_profile_trials(re0, float(cl.q[0]), float(cl.pa_rad[0]))]
+    assert np.allclose(d_re, want, rtol=1e-6), (d_re, want)
+    # a refit with one entry held can reach no higher ln L than the optimum (LM tolerance)
+    assert np.all(d_lnl > -0.5), d_lnl
+    assert np.max(d_lnl) > 1.0, d_lnl    # and R_e is measured here: some trial costs ln L
+    assert d_flux.shape == (len(want), 1) and np.all(np.isfinite(d_flux))
