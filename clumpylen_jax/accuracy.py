@@ -53,6 +53,12 @@ class Accuracy:
         without a PSF (benchmarks/results/mog_accuracy.md), 8 times the cost of a
         Gaussian clump and no stamps. The clump fits choose these two for their round
         n = 0.5 and n = 1 clumps (`inference.auto.fit_clump_pixels`).
+    ray_footprint: with source_mode "analytic", clumps (all Sérsic n = 0.5) are evaluated as
+        their mean over each ray's source-plane cell (rays at the centres of equal cells tiling
+        each lens pixel; the cell's second moment from the local lens map added to the
+        clump's covariance: `render.gaussian_clumps_cell_brightness`) instead of at the
+        Gauss–Legendre points: no aliasing of clumps narrower than the ray spacing. The
+        lensed clump fits use it (`inference.auto_run.make_model_factory`).
     """
 
     lens_subsampling: int = 4
