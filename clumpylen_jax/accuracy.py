@@ -53,6 +53,12 @@ class Accuracy:
         without a PSF (benchmarks/results/mog_accuracy.md), 8 times the cost of a
         Gaussian clump and no stamps. The clump fits choose these two for their round
         n = 0.5 and n = 1 clumps (`inference.auto.fit_clump_pixels`).
+    ray_footprint: with source_mode "analytic", clumps (all Sérsic n = 0.5) are evaluated as
+        their mean over each ray's source-plane cell (rays at the centres of equal cells tiling
+        each lens pixel; the cell's second moment from the local lens map added to the
+        clump's covariance: `render.gaussian_clumps_cell_brightness`) instead of at the
+        Gauss–Legendre points: no aliasing of clumps narrower than the ray spacing. The
+        lensed clump fits use it (`inference.auto_run.make_model_factory`).
     """
 
     lens_subsampling: int = 4
@@ -67,6 +73,7 @@ class Accuracy:
     gaussian_noise_above: float | None = 1.0e4
     host_subsampling: bool = False
     clump_pixels: str = "sersic"
+    ray_footprint: bool = False
 
     def validate(self, name="render.accuracy"):
         for key in ("lens_subsampling", "source_order", "psf_oversampling"):
@@ -81,6 +88,8 @@ class Accuracy:
                 self.source_mode, " or ".join(f'"{m}"' for m in SOURCE_MODES))
         require(self.clump_pixels in CLUMP_PIXELS, f"{name}.clump_pixels", self.clump_pixels,
                 " or ".join(f'"{m}"' for m in CLUMP_PIXELS))
+        require(isinstance(self.ray_footprint, (bool, np.bool_)), f"{name}.ray_footprint",
+                self.ray_footprint, "true or false")
         require(np.isfinite(self.linearise_tolerance) and self.linearise_tolerance >= 0,
                 f"{name}.linearise_tolerance", self.linearise_tolerance, "a fraction ≥ 0")
         for key in ("stamp_flux_fraction", "source_flux_fraction"):

@@ -121,6 +121,41 @@ def clumps_brightness(clumps: Clumps, x1, x2):
     return out
 
 
+GAUSS_SIGMA_PER_RE = 1.0 / np.sqrt(2.0 * np.log(2.0))   # σ / R_e of a Sérsic n = 0.5 (Gaussian)
+
+
+def gaussian_clumps_cell_brightness(clumps: Clumps, x1, x2, cov):
+    """Mean surface brightness [B, ...] (per arcsec², unit-flux profiles × flux) of Gaussian
+    clumps (Sérsic n = 0.5; their n is not read) over each ray's source-plane cell: the
+    clump's covariance plus the cell's second moment cov = (s11, s12, s22) [...] (arcsec²),
+    the Gaussian approximation of averaging over the cell.
+
+    Point sampling (`clumps_brightness`) aliases a clump narrower than the ray spacing: through
+    an SIS at 2 rays per 0.01" lens pixel a q = 0.27, R_e = 7.5 mas clump (minor σ 1.7 mas
+    across the arc, rays ~5 mas apart) drew an image Δχ² = 75 from the converged one, and the
+    fits ran to such shapes (issue 18). With cov → 0 this is the point value."""
+    s11, s12, s22 = cov
+    nb = clumps.flux.shape[1]
+
+    def body(acc, k):
+        a2 = (clumps.re_arcsec[k] * GAUSS_SIGMA_PER_RE) ** 2
+        b2 = a2 * clumps.q[k] ** 2
+        c, s = jnp.cos(clumps.pa_rad[k]), jnp.sin(clumps.pa_rad[k])
+        c11 = a2 * c * c + b2 * s * s + s11
+        c22 = a2 * s * s + b2 * c * c + s22
+        c12 = (a2 - b2) * c * s + s12
+        det = c11 * c22 - c12 * c12
+        d1 = x1 - clumps.center_arcsec[k, 0]
+        d2 = x2 - clumps.center_arcsec[k, 1]
+        quad = (c22 * d1 * d1 - 2.0 * c12 * d1 * d2 + c11 * d2 * d2) / det
+        val = jnp.exp(-0.5 * quad) / (2.0 * jnp.pi * jnp.sqrt(det))
+        return acc + clumps.flux[k][(...,) + (None,) * val.ndim] * val[None], None
+
+    acc0 = jnp.zeros((nb,) + jnp.shape(x1), jnp.result_type(x1, clumps.flux))
+    out, _ = jax.lax.scan(body, acc0, jnp.arange(clumps.count))
+    return out
+
+
 # ------------------------------------------------------------------ pixel-integrated images
 
 

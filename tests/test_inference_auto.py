@@ -477,3 +477,78 @@ def test_without_errors_the_same_clumps_and_no_table():
     assert bare.log_likelihood == full.log_likelihood
     same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(a, b)), bare.state, full.state)
     assert all(jax.tree_util.tree_leaves(same))
+
+
+def test_profile_sigma_is_a_lower_bound_of_a_quadratic_profile():
+    """profile_sigma: for refits on a quadratic ln L of width σ_p (Δln L = Δx²/2σ_p²) it
+    returns σ_p whatever Δx, never less than the Fisher σ given, |Δx| for a refit within
+    2Δln L < 1 (or better than the optimum), and ignores NaN refits."""
+    sp = 0.3
+    dx = np.array([0.1, 0.6, -1.5])
+    assert auto.profile_sigma(0.01, dx, dx**2 / (2 * sp**2)) == pytest.approx(sp)
+    assert auto.profile_sigma(0.5, dx, dx**2 / (2 * sp**2)) == pytest.approx(0.5)
+    assert auto.profile_sigma(0.01, [0.2, np.nan], [0.1, np.nan]) == pytest.approx(0.2)
+    assert auto.profile_sigma(0.01, [0.2], [-3.0]) == pytest.approx(0.2)
+    assert auto.profile_sigma(0.01, [], []) == 0.01
+
+
+def test_re_profile_trials_keep_the_measured_axis():
+    """Same orientation: R_e·f with the minor axis q·R_e kept ("minor") or from
+    SHAPE_START_Q ("open"); turned by 90°: the old major axis is the new minor one (q = 1/f).
+    q stays inside the clump q range."""
+    tr = auto.re_profile_trials(0.006, 0.3, 0.8, trials=((1.2, "minor"), (1.2, "open"),
+                                                         (1.25, "turned"), (5.0, "minor")))
+    (r0, q0, p0), (r1, q1, p1), (r2, q2, p2), (r3, q3, _) = tr
+    assert r0 == pytest.approx(0.0072) and r0 * q0 == pytest.approx(0.006 * 0.3) and p0 == 0.8
+    assert q1 == pytest.approx(auto.SHAPE_START_Q) and p1 == 0.8
+    assert r2 == pytest.approx(0.0075) and r2 * q2 == pytest.approx(0.006)
+    assert p2 == pytest.approx(0.8 + np.pi / 2)
+    assert q3 == pytest.approx(auto.CLUMP_Q_RANGE[0] + 0.01)
+
+
+def test_profile_raises_errors_keeps_fisher_ones_and_flags_a_degenerate_shape():
+    """_apply_profile: the R_e and flux errors become the profile bound where it is larger
+    (mag error with them), the Fisher ones stay in *_err_fisher, and "shape_degenerate" is
+    set where the R_e error grew more than PROFILE_FLAG_RATIO times; a clump not profiled
+    keeps its errors."""
+    from astropy.table import Table
+    t = Table({"re_arcsec": [0.005, 0.02, 0.01], "re_arcsec_err": [1e-4, 1e-3, 1e-3],
+               "flux_X": [2.0, 1.0, 1.0], "flux_X_err": [0.03, 0.05, 0.05],
+               "mag_X": [24.0, 25.0, 25.0], "mag_X_err": [0.016, 0.054, 0.054]})
+    prof = {4: (np.array([0.8e-3, 2e-3]), np.array([[0.2], [0.02]]), np.array([2.0, 8.0])),
+            7: (np.array([1e-3]), np.array([[0.01]]), np.array([50.0]))}
+    flag = auto._apply_profile(t, prof, [4, 7, 9], ["X"])
+    assert t["re_arcsec_err"][0] == pytest.approx(max(0.8e-3 / 2, 2e-3 / 4))
+    assert t["flux_X_err"][0] == pytest.approx(0.2 / 2)
+    assert t["mag_X_err"][0] == pytest.approx(2.5 / np.log(10) * 0.1 / 2.0)
+    assert t["re_arcsec_err_fisher"][0] == 1e-4 and t["flux_X_err_fisher"][0] == 0.03
+    assert t["re_arcsec_err"][1] == pytest.approx(1e-3) and t["flux_X_err"][1] == 0.05
+    assert t["re_arcsec_err"][2] == 1e-3
+    assert flag.tolist() == [auto.FLAGS["shape_degenerate"], 0, 0]
+
+
+@pytest.mark.slow
+def test_profile_refits_hold_r_e_and_do_not_beat_the_optimum():
+    """_profile on a fitted elliptical clump: each refit keeps R_e exactly at its trial value
+    (the held entry is not solved), none beats the optimum beyond the LM tolerance, and the
+    flux changes are finite. Slow: the moves' compiled LM solve (as `test_merge_move_joins_a_split_elongated_clump_not_two_clumps`)."""
+    elong = Clumps(jnp.array([[0.0, 0.05]]), jnp.array([[20.0]]), jnp.array([0.06]),
+                   jnp.full(1, 0.5), jnp.array([0.5]), jnp.array([0.3]))
+    data, var = _observe(Source(bulge=HOST, clumps=elong), 5)
+    opts = AutoOptions(max_clumps=3, n_starts=2, re_max_arcsec=4 * PIX).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    u = auto._set_clump(ctx, u, 0, [0.005, 0.045], [15.0], 0.05, 0.6, 0.2)
+    active = np.array([1.0, 0.0, 0.0])
+    ctx.shaped = np.array([True, False, False])
+    us, lnl, _, _ = auto._fit_local(ctx, u[None], [[0, 1, 2]], active[None])
+    u, lnl = us[0], float(lnl[0])
+    re0 = float(ctx.param.state(jnp.asarray(u)).source.clumps.re_arcsec[0])
+    prof = auto._profile(ctx, u, lnl, active)
+    d_re, d_flux, d_lnl = prof[0]
+    cl = ctx.param.state(jnp.asarray(u)).source.clumps
+    want = [r - re0 for r, _, _ in auto.re_profile_trials(re0, float(cl.q[0]), float(cl.pa_rad[0]))]
+    assert np.allclose(d_re, want, rtol=1e-6), (d_re, want)
+    # a refit with one entry held can reach no higher ln L than the optimum (LM tolerance)
+    assert np.all(d_lnl > -0.5), d_lnl
+    assert np.max(d_lnl) > 1.0, d_lnl    # and R_e is measured here: some trial costs ln L
+    assert d_flux.shape == (len(want), 1) and np.all(np.isfinite(d_flux))

@@ -1,5 +1,7 @@
 """The composed model: lensing, pixels, PSF, noise, stages and gradients."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -395,3 +397,54 @@ def test_float32_model_is_finite_and_close_to_float64():
     for a, b in zip(i64, i32):
         assert b.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(b)))
         assert np.max(np.abs(np.asarray(a) - np.asarray(b))) < 1e-4 * float(jnp.max(a))
+
+
+# ------------------------------------------------------------------ ray footprints (issue 18)
+
+
+def test_cell_brightness_without_a_cell_is_the_gaussian_clumps_point_value():
+    """gaussian_clumps_cell_brightness with zero cell moments is clumps_brightness of
+    n = 0.5 clumps (elliptical, rotated), and a cell moment s² widens each axis as σ² + s²
+    (the peak of a round clump falls by σ²/(σ² + s²), its integral stays 1)."""
+    from clumpylen_jax import render
+    cl = Clumps(f64([[0.01, -0.02], [0.0, 0.03]]), f64([[2.0], [1.0]]), f64([0.006, 0.01]),
+                f64([0.5, 0.5]), f64([0.3, 0.8]), f64([0.7, -1.9]))
+    x1, x2 = (f64(v) for v in np.random.default_rng(0).normal(0, 0.02, (2, 50)))
+    zero = jnp.zeros_like(x1)
+    a = render.gaussian_clumps_cell_brightness(cl, x1, x2, (zero, zero, zero))
+    b = render.clumps_brightness(cl, x1, x2)
+    assert np.allclose(a, b, rtol=1e-10, atol=1e-12 * float(jnp.max(b)))
+    one = Clumps(f64([[0.0, 0.0]]), f64([[1.0]]), f64([0.006]), f64([0.5]), f64([1.0]), f64([0.0]))
+    sig2 = (0.006 * render.GAUSS_SIGMA_PER_RE) ** 2
+    s2 = f64([0.5 * sig2])
+    peak = render.gaussian_clumps_cell_brightness(one, f64([0.0]), f64([0.0]), (s2, f64([0.0]), s2))
+    assert float(peak[0, 0]) == pytest.approx(1 / (2 * np.pi * 1.5 * sig2), rel=1e-12)
+
+
+def test_ray_footprint_draws_a_thin_lensed_clump_that_point_rays_alias():
+    """A thin Gaussian clump (R_e 7.5 mas, q 0.27: minor σ 1.7 mas) behind an SIS, 2 rays per
+    0.01" lens pixel (rays ~5 mas apart: the clump fits' sampling): averaged over each ray's
+    cell (`Accuracy.ray_footprint`) its image is within a fifth of the point-sampled error of
+    a converged one (8 rays per 0.0025" pixel) and keeps its flux to 0.5 % (measured: peak
+    pixel 1.9 % against 14 %, flux 0.36 % against 3.8 %)."""
+    lens = SIS(f64(1.0), f64([0.0, 0.0]))
+    src = Source(clumps=Clumps(f64([[0.061, 0.0071]]), f64([[10.0]]), f64([0.0075]), f64([0.5]),
+                               f64([0.27]), f64([1.85])))
+    kw = dict(lens=lens, field_arcsec=((0.9, 1.2), (-0.21, 0.45)), source_pixel_arcsec=0.001)
+    bands = [Band("X", 0.03, 1.0)]
+    fast = Accuracy(source_mode="analytic", lens_subsampling=2)
+    imgs = {}
+    for name, acc, lp in (("point", fast, 0.01), ("cell", Accuracy(source_mode="analytic",
+                          lens_subsampling=2, ray_footprint=True), 0.01),
+                          ("ref", Accuracy(source_mode="analytic", lens_subsampling=8), 0.0025)):
+        m = build_model(src, bands, accuracy=acc, lens_pixel_arcsec=lp, **kw)
+        imgs[name] = np.asarray(m.band_images(src)[0])
+    ref = imgs["ref"]
+    err = {k: np.max(np.abs(imgs[k] - ref)) / ref.max() for k in ("point", "cell")}
+    assert err["cell"] < err["point"] / 5, err
+    assert abs(imgs["cell"].sum() / ref.sum() - 1) < 5e-3
+    with pytest.raises(ConfigError, match="ray_footprint"):
+        expo = Clumps(f64([[0.06, 0.0]]), f64([[1.0]]), f64([0.005]), f64([1.0]), f64([1.0]),
+                      f64([0.0]))   # n = 1: the cell average is the Gaussian's only
+        build_model(Source(clumps=expo), bands, lens_pixel_arcsec=0.01,
+                    accuracy=dataclasses.replace(fast, ray_footprint=True), **kw)

@@ -131,7 +131,9 @@ class RoundGaussianClumps(Renderer):
 
 
 class AnalyticClumps(Renderer):
-    """Clumps' Sérsic light evaluated at every ray of the lens plane (the reference)."""
+    """Clumps' Sérsic light evaluated at every ray of the lens plane (the reference); where the
+    plane has the rays' cell moments (`Accuracy.ray_footprint`), Gaussian clumps averaged over
+    each ray's source-plane cell (`render.gaussian_clumps_cell_brightness`)."""
 
     plane: LensPlane
     any_count = True
@@ -141,7 +143,11 @@ class AnalyticClumps(Renderer):
         if source.clumps is None or source.clumps.count == 0:
             return None
         p = self.plane
-        vals = render.clumps_brightness(source.clumps, p.beta1, p.beta2) @ p.ray_weights
+        if p.ray_cov is not None:
+            vals = render.gaussian_clumps_cell_brightness(source.clumps, p.beta1, p.beta2,
+                                                          p.ray_cov) @ p.ray_weights
+        else:
+            vals = render.clumps_brightness(source.clumps, p.beta1, p.beta2) @ p.ray_weights
         return vals * p.pixel_area
 
     def subgrid_light(self, source: Source, subgrids):

@@ -7,17 +7,33 @@ The geometry (tracing, footprints, interpolation of the traced corners) is
 
 from __future__ import annotations
 
+from typing import Optional
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from ..lensing import tracing
+from ..lensing.grid import bilinear_patch
 from ..pixels import Grid, gauss_legendre_offsets, rebin_sparse, sparse_rebin_operators
 
 
 def _cols(a, lo, hi):
     """Columns lo:hi of a [T, n] operator array, or None."""
     return None if a is None else a[:, lo:hi]
+
+
+def ray_cell_covariance(corner_b1, corner_b2, rows, cols, offsets, lens_subsampling: int):
+    """(s11, s12, s22) [M, R] (arcsec²): second moment of the source-plane image of each ray's
+    cell, a square of 1/lens_subsampling of its lens pixel (variance (side)²/12 per axis),
+    through the local bilinear map of the pixel's traced corners: S = (dx dxᵀ + dy dyᵀ)/(12 n²)
+    with dx, dy the β change across the whole pixel along x and y at the ray."""
+    fx = (offsets[0] + 0.5)[None, :]
+    fy = (offsets[1] + 0.5)[None, :]
+    _, dx1, dy1 = bilinear_patch(corner_b1, rows[:, None], cols[:, None], fx, fy)
+    _, dx2, dy2 = bilinear_patch(corner_b2, rows[:, None], cols[:, None], fx, fy)
+    k = 1.0 / (12.0 * lens_subsampling ** 2)
+    return (k * (dx1 * dx1 + dy1 * dy1), k * (dx1 * dx2 + dy1 * dy2), k * (dx2 * dx2 + dy2 * dy2))
 
 
 class LensPlane(eqx.Module):
@@ -39,16 +55,23 @@ class LensPlane(eqx.Module):
     ray_cols: jnp.ndarray
     ray_window: tuple = eqx.field(static=True)
     rebin_ops: tuple
+    ray_cov: Optional[tuple] = None     # (s11, s12, s22) [M, R]: second moment of each ray's
+                                        # source-plane cell (arcsec²), where asked for
 
     @classmethod
     def build(cls, corner_b1, corner_b2, grid: Grid, rows, cols, ray_pixels, layouts,
-              lens_subsampling: int, dtype):
+              lens_subsampling: int, dtype, ray_cov: bool = False):
         """From the traced corners: rays in the pixels `ray_pixels` (indices into rows, cols).
+        ray_cov: also each ray's cell second moment (`ray_cell_covariance`).
         Returns (the plane, (β1, β2) of its rays in numpy float64 for other builders)."""
         sel = ray_pixels
         window = ((int(rows[sel].min()), int(rows[sel].max()) + 1,
                    int(cols[sel].min()), int(cols[sel].max()) + 1) if sel.size else (0, 0, 0, 0))
-        offs, wts = gauss_legendre_offsets(lens_subsampling)
+        # with cell moments the rays are the centres of equal cells that tile the pixel (the
+        # Gauss–Legendre points' cells would overlap and leave gaps)
+        offs, wts = (((np.arange(lens_subsampling) + 0.5) / lens_subsampling - 0.5,
+                      np.full(lens_subsampling, 1.0 / lens_subsampling)) if ray_cov
+                     else gauss_legendre_offsets(lens_subsampling))
         ox, oy = np.meshgrid(offs, offs)
         wxy = np.outer(wts, wts).ravel()
         b1, b2 = tracing.rays_in_pixels(corner_b1, corner_b2, rows[sel], cols[sel],
@@ -61,7 +84,10 @@ class LensPlane(eqx.Module):
         return cls(grid, jnp.asarray(rows), jnp.asarray(cols), jnp.asarray(c1[:, 0], dtype),
                    jnp.asarray(c2[:, 0], dtype), jnp.asarray(b1, dtype), jnp.asarray(b2, dtype),
                    jnp.asarray(wxy, dtype), jnp.asarray(rows[sel]), jnp.asarray(cols[sel]),
-                   window, ops), (b1, b2)
+                   window, ops,
+                   tuple(jnp.asarray(v, dtype) for v in ray_cell_covariance(
+                       corner_b1, corner_b2, rows[sel], cols[sel], (ox.ravel(), oy.ravel()),
+                       lens_subsampling)) if ray_cov else None), (b1, b2)
 
     @property
     def dtype(self):

@@ -288,8 +288,14 @@ def _lensed_model(source, layouts, lens, field_arcsec, center, radius, lens_pixe
         linearised = LinearisedClumps.build(source, images, layouts, hr, accuracy)
     ray_pixels = _ray_pixels(source, traced, corner_b1, corner_b2, rows, cols, footprints,
                              accuracy)
+    footprint = accuracy.ray_footprint and accuracy.source_mode == "analytic"
+    if footprint and has_clumps:
+        bad = np.asarray(source.clumps.n, float)
+        bad = bad[bad != 0.5]
+        require(not bad.size, "render.accuracy.ray_footprint", True,
+                f"clumps that are all Gaussian (Sérsic n = 0.5; n = {bad[:1]} here)")
     plane, (b1, b2) = LensPlane.build(corner_b1, corner_b2, hr, rows, cols, ray_pixels, layouts,
-                                      accuracy.lens_subsampling, dtype)
+                                      accuracy.lens_subsampling, dtype, ray_cov=footprint)
     del corner_b1, corner_b2
     hosts = LensPlaneHosts(plane, core, accuracy.host_subsampling)
     if accuracy.source_mode == "analytic":
