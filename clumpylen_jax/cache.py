@@ -72,10 +72,10 @@ def enable_compilation_cache(enabled: bool | None = None, folder=None) -> Path |
     return folder
 
 
-def read_ahead(scene):
+def read_ahead(scene, start: bool = True):
     """A `programcache.ReadAhead` of the programs a run of `scene` (a resolved Scene, its
-    overrides applied) used last time, hinted by the scene's resolved settings; None with
-    the cache off. Start it as early as a run knows its scene."""
+    overrides applied) used last time, hinted by the scene's resolved settings (loading
+    them from `start`); None with the cache off. Make it as early as a run knows its scene."""
     if not cache_enabled():
         return None
     import json
@@ -83,4 +83,4 @@ def read_ahead(scene):
     from . import scene as scene_mod
     from .programcache import ReadAhead
     hint = json.dumps(scene_mod.resolved_dict(scene), sort_keys=True, default=str)
-    return ReadAhead(cache_root() / "programs", hint)
+    return ReadAhead(cache_root() / "programs", hint, start)

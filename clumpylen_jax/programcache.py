@@ -144,23 +144,33 @@ class ReadAhead:
 
     folder: the programs folder.  hint: names the list of files (any string, e.g. a hash
     of the resolved scene); the files are those the last `remember` with that hint
-    recorded, loaded in the order that run used them. A program asked for before its
-    turn is loaded by the thread that asks. `remember` records this run's files.
+    recorded, loaded in the order that run used them (from `start`, unless `start` is
+    False: call `start()` then). A program asked for before its turn is loaded by the
+    thread that asks. `remember` records this run's files. `stored`: a list was found
+    and every file on it exists (the run will likely load, not compile, its programs).
     """
 
-    def __init__(self, folder, hint: str):
+    def __init__(self, folder, hint: str, start: bool = True):
         self.folder = Path(folder)
         self._list = self.folder / "hints" / f"{hashlib.sha256(hint.encode()).hexdigest()[:40]}.txt"
         try:
             self._listed = self._list.read_text().split()
         except OSError:
             self._listed = []
+        self.stored = bool(self._listed) and all((self.folder / n).is_file()
+                                                 for n in self._listed)
         self._used = []
         self._ahead = {}
-        if self._listed:
+        if start:
+            self.start()
+
+    def start(self) -> "ReadAhead":
+        """Begin loading the listed files in a background thread (once)."""
+        if self._listed and not self._ahead:
             pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-read-ahead")
             self._ahead = {n: pool.submit(_load, self.folder / n, False) for n in self._listed}
             pool.shutdown(wait=False)
+        return self
 
     def load(self, path: Path):
         """The executable at path (read ahead, or loaded now), or None; the wait for one

@@ -77,7 +77,7 @@ def test_read_ahead_loads_last_runs_programs_before_they_are_asked_for(monkeypat
     stale list (a file gone) costs nothing but a compile."""
     want = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
     first = programcache.ReadAhead(tmp_path, "scene A")
-    assert not first._ahead                     # nothing remembered yet
+    assert not first._ahead and not first.stored        # nothing remembered yet
     programcache.call("tiny", _render, *_args(), folder=first)
     first.remember()
     (listed,) = (tmp_path / "hints").glob("*.txt")
@@ -85,6 +85,7 @@ def test_read_ahead_loads_last_runs_programs_before_they_are_asked_for(monkeypat
 
     again = programcache.ReadAhead(tmp_path, "scene A")
     (name,) = again._ahead
+    assert again.stored
     assert again._ahead[name].result() is not None          # loaded by the reading thread
     with monkeypatch.context() as m:
         _refuse_tracing(m)
@@ -94,6 +95,7 @@ def test_read_ahead_loads_last_runs_programs_before_they_are_asked_for(monkeypat
 
     (tmp_path / name).unlink()
     stale = programcache.ReadAhead(tmp_path, "scene A")
+    assert not stale.stored
     got = np.asarray(programcache.call("tiny", _render, *_args(), folder=stale))
     assert got.tobytes() == want.tobytes() and (tmp_path / name).is_file()
 
