@@ -121,9 +121,6 @@ def clumps_brightness(clumps: Clumps, x1, x2):
     return out
 
 
-GAUSS_SIGMA_PER_RE = 1.0 / np.sqrt(2.0 * np.log(2.0))   # σ / R_e of a Sérsic n = 0.5 (Gaussian)
-
-
 def gaussian_clumps_cell_brightness(clumps: Clumps, x1, x2, cov):
     """Mean surface brightness [B, ...] (per arcsec², unit-flux profiles × flux) of Gaussian
     clumps (Sérsic n = 0.5; their n is not read) over each ray's source-plane cell: the
@@ -134,11 +131,13 @@ def gaussian_clumps_cell_brightness(clumps: Clumps, x1, x2, cov):
     an SIS at 2 rays per 0.01" lens pixel a q = 0.27, R_e = 7.5 mas clump (minor σ 1.7 mas
     across the arc, rays ~5 mas apart) drew an image Δχ² = 75 from the converged one, and the
     fits ran to such shapes (issue 18). With cov → 0 this is the point value."""
+    from .gaussian_mixtures import round_mixture
+    (sigma_per_re,) = round_mixture("round_gaussian")[2]    # σ / R_e, as the round renderer's
     s11, s12, s22 = cov
     nb = clumps.flux.shape[1]
 
     def body(acc, k):
-        a2 = (clumps.re_arcsec[k] * GAUSS_SIGMA_PER_RE) ** 2
+        a2 = (clumps.re_arcsec[k] * sigma_per_re) ** 2
         b2 = a2 * clumps.q[k] ** 2
         c, s = jnp.cos(clumps.pa_rad[k]), jnp.sin(clumps.pa_rad[k])
         c11 = a2 * c * c + b2 * s * s + s11

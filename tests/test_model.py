@@ -406,7 +406,7 @@ def test_cell_brightness_without_a_cell_is_the_gaussian_clumps_point_value():
     """gaussian_clumps_cell_brightness with zero cell moments is clumps_brightness of
     n = 0.5 clumps (elliptical, rotated), and a cell moment s² widens each axis as σ² + s²
     (the peak of a round clump falls by σ²/(σ² + s²), its integral stays 1)."""
-    from clumpylen_jax import render
+    from clumpylen_jax import gaussian_mixtures, render
     cl = Clumps(f64([[0.01, -0.02], [0.0, 0.03]]), f64([[2.0], [1.0]]), f64([0.006, 0.01]),
                 f64([0.5, 0.5]), f64([0.3, 0.8]), f64([0.7, -1.9]))
     x1, x2 = (f64(v) for v in np.random.default_rng(0).normal(0, 0.02, (2, 50)))
@@ -415,7 +415,7 @@ def test_cell_brightness_without_a_cell_is_the_gaussian_clumps_point_value():
     b = render.clumps_brightness(cl, x1, x2)
     assert np.allclose(a, b, rtol=1e-10, atol=1e-12 * float(jnp.max(b)))
     one = Clumps(f64([[0.0, 0.0]]), f64([[1.0]]), f64([0.006]), f64([0.5]), f64([1.0]), f64([0.0]))
-    sig2 = (0.006 * render.GAUSS_SIGMA_PER_RE) ** 2
+    sig2 = (0.006 * gaussian_mixtures.round_mixture("round_gaussian")[2][0]) ** 2
     s2 = f64([0.5 * sig2])
     peak = render.gaussian_clumps_cell_brightness(one, f64([0.0]), f64([0.0]), (s2, f64([0.0]), s2))
     assert float(peak[0, 0]) == pytest.approx(1 / (2 * np.pi * 1.5 * sig2), rel=1e-12)
