@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from clumpylen_jax import profiles
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.inference import auto
 from clumpylen_jax.inference.auto import AutoOptions, fit_without_truth
@@ -337,8 +338,8 @@ def test_source_shape_undoes_the_lens_stretch():
 
 def test_merged_clump_is_the_pair_second_moment():
     """Two equal round clumps on the β1 axis: one clump at their midpoint, flux summed, major
-    axis along β1 (PA 0) with σ² = c²R_e² + d², minor σ = cR_e (c: `sersic_sigma_per_re`)."""
-    c = auto.sersic_sigma_per_re(0.5)
+    axis along β1 (PA 0) with σ² = c²R_e² + d², minor σ = cR_e (c: `profiles.sersic_axis_rms_per_re_np`)."""
+    c = profiles.sersic_axis_rms_per_re_np(0.5)
     assert c == pytest.approx(np.sqrt(1 / (2 * np.log(2))), rel=1e-6)  # Gaussian: R_e = σ√(2 ln 2)
     beta, flux, re, q, pa = auto.merged_clump([[-0.02, 0.1], [0.02, 0.1]], [[1.0], [1.0]],
                                               [0.01, 0.01], 0.5, q_range=(0.0, 1.0))

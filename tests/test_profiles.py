@@ -23,6 +23,19 @@ def test_sersic_b_exact(n):
     assert abs(b / ref - 1) < 1e-6
 
 
+def test_axis_rms_per_re_against_closed_forms():
+    """Gaussian (n = 0.5): σ = R_e/√(2 ln 2). Exponential (n = 1, scale h = R_e/b): <r²> = 6h²,
+    so σ per axis = √3 h. Numerical: the moment integral of the profile itself."""
+    assert profiles.sersic_axis_rms_per_re_np(0.5) == pytest.approx(1 / math.sqrt(2 * math.log(2)),
+                                                                    rel=1e-12)
+    b1 = float(profiles.sersic_b(1.0))
+    assert profiles.sersic_axis_rms_per_re_np(1.0) == pytest.approx(math.sqrt(3) / b1, rel=1e-10)
+    b = float(profiles.sersic_b(2.5))
+    light = lambda r, k: r**k * np.exp(-b * r**(1 / 2.5))
+    r2 = integrate.quad(light, 0, np.inf, args=(3,))[0] / integrate.quad(light, 0, np.inf, args=(1,))[0]
+    assert profiles.sersic_axis_rms_per_re_np(2.5) == pytest.approx(math.sqrt(r2 / 2), rel=1e-6)
+
+
 def test_sersic_b_gradient_matches_implicit_derivative():
     for n in (0.2, 0.5, 1.0, 4.0, 10.0):
         g = float(jax.grad(profiles.sersic_b)(n))

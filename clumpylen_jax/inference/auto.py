@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import profiles
 from ..errors import require
 from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
@@ -564,28 +565,20 @@ def _prune(ctx: _Ctx, u, lnl, active, steps):
     return lnl, active
 
 
-def sersic_sigma_per_re(n: float) -> float:
-    """Per-axis rms radius of a round Sérsic profile of index n, in units of its R_e:
-    √(Γ(4n) / (2 b²ⁿ Γ(2n))) with b from Γ(2n, b) = Γ(2n)/2 (0.849 for n = 0.5, 1.03 for 1)."""
-    from scipy.special import gammainccinv, gammaln
-    b = gammainccinv(2 * n, 0.5)
-    return float(np.sqrt(0.5 * np.exp(gammaln(4 * n) - gammaln(2 * n) - 2 * n * np.log(b))))
-
-
 def merged_clump(beta, flux, re, n: float, q_range=CLUMP_Q_RANGE):
     """One clump with the light of several round ones: (β [2], flux [B], R_e, q, PA).
 
     beta [m, 2] (arcsec), flux [m, B], re [m] (arcsec, round clumps of Sérsic index n). Fluxes
     summed; centre flux-weighted (first band); the second moment of the light (each clump's
-    own σ² = (c·R_e)² per axis, `sersic_sigma_per_re`, plus its offset) gives the ellipse:
-    R_e of the major axis, q = σ_minor/σ_major (clipped into q_range), PA counter-clockwise
+    own σ² = (c·R_e)² per axis, c from `profiles.sersic_axis_rms_per_re_np`, plus its offset)
+    gives the ellipse: R_e of the major axis, q = σ_minor/σ_major (clipped into q_range), PA counter-clockwise
     from +β1 (the `Sersic` conventions)."""
     beta, flux, re = np.asarray(beta, float), np.asarray(flux, float), np.asarray(re, float)
     w = np.clip(flux[:, 0], 1e-300, None)
     w = w / w.sum()
     c = w @ beta
     d = beta - c
-    k = sersic_sigma_per_re(n)
+    k = profiles.sersic_axis_rms_per_re_np(n)
     m2 = np.einsum("i,ij,ik->jk", w, d, d) + np.eye(2) * float(w @ (k * re) ** 2)
     val, vec = np.linalg.eigh(m2)
     q = float(np.clip(np.sqrt(max(val[0], 0.0) / val[1]), q_range[0] + 0.05, q_range[1] - 0.05))
