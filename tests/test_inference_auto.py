@@ -44,6 +44,9 @@ def test_options_are_checked_before_any_work():
     with pytest.raises(ConfigError, match="fit.criterion"):
         fit_without_truth(make_model, [np.zeros((NPIX, NPIX))], [np.ones((NPIX, NPIX))],
                           options=AutoOptions(criterion="aic"))
+    with pytest.raises(ConfigError, match="fit.rtol"):
+        fit_without_truth(make_model, [np.zeros((NPIX, NPIX))], [np.ones((NPIX, NPIX))],
+                          options=AutoOptions(rtol=0.0))
     with pytest.raises(ConfigError, match="data"):
         fit_without_truth(make_model, [np.zeros((5, 5))], [np.ones((5, 5))])
 

@@ -250,6 +250,26 @@ def test_auto_fit_of_a_mock_cutout_with_huge_sigma_pixels_through_the_command(tm
     check_mock_fit(out, knots)
 
 
+def test_auto_stage_of_the_command_runs_at_the_looser_tolerance(tmp_path, monkeypatch):
+    """`auto_starts` asks the automatic stage for AUTO_RTOL (the joint fit refits from its
+    optimum), no errors and no moves; every other caller keeps AutoOptions' rtol."""
+    from clumpylen_jax.inference import auto
+    from clumpylen_jax.observations import run
+    seen = {}
+
+    def capture(*args, options, **kwargs):
+        seen["options"] = options
+        raise RuntimeError("captured")
+    monkeypatch.setattr(auto, "fit_without_truth", capture)
+    scene = load_observation_scene(_mock_arc_with_flagged_pixels(tmp_path)[0])
+    obs, frame = run.read_scene_data(scene)
+    with pytest.raises(RuntimeError, match="captured"):
+        run.auto_starts(obs, frame, scene)
+    opts = seen["options"]
+    assert opts.rtol == run.AUTO_RTOL > auto.AutoOptions().rtol
+    assert not opts.errors and not opts.merge
+
+
 def check_mock_fit(out, knots):
     from astropy.table import Table
     summary = json.loads((out / "summary.json").read_text())

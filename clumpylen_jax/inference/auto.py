@@ -64,7 +64,6 @@ RE_MAX_PIXELS = 2.0        # default upper bound of clump R_e: 2 finest detector
 LOCAL_SLOTS = 3            # clumps free in a counting step: the new one and its 2 nearest
 MERGE_SEPARATION = 3.0     # pairs tried as one clump: centres within 3 (R_e,i + R_e,j)
 SHAPE_START_Q = 0.6        # axis ratio a shape move starts from
-TOL = 1e-6                 # Levenberg–Marquardt rtol (lm.py)
 RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the upper one
 CLUMP_Q_RANGE = (0.2, 1.0)
 HOST_N_RANGE = (0.3, 6.0)
@@ -97,6 +96,10 @@ class AutoOptions:
     re_max_arcsec: upper bound of clump R_e (None: RE_MAX_PIXELS finest detector pixels).
     seed: of the final perturbed starts.  clump_n: Sérsic index of every clump (fixed).
     detect_snr: candidates are matched-filtered S/N peaks above it.
+    rtol: Levenberg–Marquardt convergence of every fit here (`lm.py`: an accepted step gaining
+        less than rtol·χ²). A caller that refits the optimum with every parameter free may
+        take a looser one (`observations.run.AUTO_RTOL`): the steps that gain the last
+        rtol·χ² are then made once, by that refit.
     max_steps: Levenberg–Marquardt steps per fit (trials that are rejected count too). 40 was
         too few: a clump started at R_e = 1 px that converges to 5 px needs 44 (it stopped
         16 in ln L short, flagged not converged); a fit that converges earlier stops there.
@@ -128,6 +131,7 @@ class AutoOptions:
     seed: int = 0
     clump_n: float = 0.5
     detect_snr: float = 4.0
+    rtol: float = 1e-6
     max_steps: int = 100
     fit_shape: bool = False
     errors: bool = True
@@ -148,6 +152,8 @@ class AutoOptions:
                 "fit.re_max_arcsec", self.re_max_arcsec, "a radius > 0 arcsec")
         require(0.2 <= self.clump_n <= 10, "fit.clump_n", self.clump_n, "a Sérsic index in [0.2, 10]")
         require(self.detect_snr > 0, "fit.detect_snr", self.detect_snr, "a S/N > 0")
+        require(np.isfinite(self.rtol) and 0 < self.rtol < 1, "fit.rtol", self.rtol,
+                "a relative χ² gain in (0, 1)")
         require(isinstance(self.max_steps, (int, np.integer)) and self.max_steps >= 1,
                 "fit.max_steps", self.max_steps, "an integer ≥ 1")
         require(isinstance(self.merge, (bool, np.bool_)), "fit.merge", self.merge, "true or false")
@@ -429,7 +435,7 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None, held_sets=No
     t0 = time.perf_counter()
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), TOL, _step_limits(ctx, m),
+        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), ctx.opts.rtol, _step_limits(ctx, m),
         int(ctx.host_index.size), LOCAL_SLOTS)
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
