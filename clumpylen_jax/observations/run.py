@@ -20,7 +20,7 @@ from .lens import place_lens
 from .read import read_observation
 
 # LM tolerance of the automatic stage (`AutoOptions.rtol`, 1e-6 there): its optimum only starts
-# the joint fit, which refits every parameter to lm.RTOL; S1063 (10 clumps): 30–40 % fewer LM
+# the joint fit, which refits every parameter to lm_fit's rtol (1e-7); S1063 (10 clumps): 30–40 % fewer LM
 # steps in the counting and final refit, the same clumps and joint χ² (Δχ² 0.001)
 AUTO_RTOL = 1e-4
 
