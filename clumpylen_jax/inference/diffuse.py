@@ -50,54 +50,72 @@ def bspline_design_1d(n: int, spacing_pix: float) -> np.ndarray:
 
 
 def bspline_design(shape, spacing_pix: float) -> np.ndarray:
-    """[ny·nx, Ky·Kx] tensor-product basis of an image (row-major like `ravel`); columns that
-    touch no pixel dropped."""
-    ny, nx = shape
-    by, bx = bspline_design_1d(ny, spacing_pix), bspline_design_1d(nx, spacing_pix)
-    by, bx = by[:, by.any(0)], bx[:, bx.any(0)]
-    return np.einsum("yi,xj->yxij", by, bx).reshape(ny * nx, -1)
+    """[ny·nx, Ky·Kx] dense tensor-product basis of an image (row-major like `ravel`; for
+    checks: the fit uses the separable factors, `make_basis`)."""
+    by, bx = _factors(shape, spacing_pix)
+    return np.einsum("yi,xj->yxij", by, bx).reshape(shape[0] * shape[1], -1)
+
+
+def _factors(shape, spacing_pix):
+    """The 1-D designs along y and x, columns that touch no pixel dropped."""
+    by, bx = bspline_design_1d(shape[0], spacing_pix), bspline_design_1d(shape[1], spacing_pix)
+    return by[:, by.any(0)], bx[:, bx.any(0)]
 
 
 class DiffuseBasis(eqx.Module):
-    """One band's basis, whitened by that band's σ and mask, with its factored normal matrix.
+    """One band's basis B = By ⊗ Bx (kept as its factors: B a = By A Bxᵀ with A = a as
+    [Ky, Kx], never the [n_pix, K] matrix), the band's weights √m/σ, and the factored
+    normal matrix.
 
-    basis: [n_pix, K] B (image units per coefficient).  white: [n_pix, K] Ã = √m B / σ.
-    chol: [K, K] lower Cholesky factor of ÃᵀÃ + λ I.  sqrt_ridge: √λ.
+    by: [ny, Ky], bx: [nx, Kx] (image units per coefficient).  weight: [ny, nx] √m / σ.
+    chol: [K, K] lower Cholesky factor of ÃᵀÃ + λ I (Ã = weight · B).  sqrt_ridge: √λ.
     """
 
-    basis: jnp.ndarray
-    white: jnp.ndarray
+    by: jnp.ndarray
+    bx: jnp.ndarray
+    weight: jnp.ndarray
     chol: jnp.ndarray
     sqrt_ridge: jnp.ndarray
 
     @property
     def n_coefficients(self) -> int:
-        return int(self.basis.shape[1])
+        return int(self.by.shape[1] * self.bx.shape[1])
+
+    def image(self, a):
+        """B a on the image [ny, nx]."""
+        return self.by @ a.reshape(self.by.shape[1], self.bx.shape[1]) @ self.bx.T
+
+    def white_transpose(self, r_white):
+        """Ãᵀ r [K] for a whitened residual r (flat [n_pix])."""
+        r = self.weight * r_white.reshape(self.weight.shape)
+        return (self.by.T @ r @ self.bx).ravel()
 
 
 def make_basis(shape, spacing_pix: float, variance, mask, dtype=jnp.float64) -> DiffuseBasis:
     """The DiffuseBasis of an image of `shape` with σ² `variance` and 0/1 `mask` (numpy)."""
-    b = bspline_design(shape, spacing_pix)
-    w = (np.sqrt(np.asarray(mask, float)) / np.sqrt(np.asarray(variance, float))).ravel()
-    white = b * w[:, None]
-    normal = white.T @ white
+    by, bx = _factors(shape, spacing_pix)
+    w = np.sqrt(np.asarray(mask, float)) / np.sqrt(np.asarray(variance, float))
+    # ÃᵀÃ[(i, j), (k, l)] = Σ_yx w² By[y, i] By[y, k] Bx[x, j] Bx[x, l], summed over y first
+    t = np.einsum("yx,yi,yk->xik", w * w, by, by)
+    normal = np.einsum("xik,xj,xl->ijkl", t, bx, bx).reshape(by.shape[1] * bx.shape[1], -1)
     lam = RIDGE * max(float(np.mean(np.diag(normal))), np.finfo(float).tiny)
     chol = np.linalg.cholesky(normal + lam * np.eye(normal.shape[0]))
     to = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    return DiffuseBasis(to(b), to(white), to(chol), to(np.sqrt(lam)))
+    return DiffuseBasis(to(by), to(bx), to(w), to(chol), to(np.sqrt(lam)))
 
 
 def coefficients(basis: DiffuseBasis, r_white):
     """a* [K] for the whitened residual r (flat [n_pix])."""
-    return jsl.cho_solve((basis.chol, True), basis.white.T @ r_white)
+    return jsl.cho_solve((basis.chol, True), basis.white_transpose(r_white))
 
 
 def profiled_residual(basis: DiffuseBasis, r_white):
     """[n_pix + K]: (r − Ã a*, √λ a*), whose squared norm is the χ² profiled over a."""
     a = coefficients(basis, r_white)
-    return jnp.concatenate([r_white - basis.white @ a, basis.sqrt_ridge * a])
+    fitted = (basis.weight * basis.image(a)).ravel()
+    return jnp.concatenate([r_white - fitted, basis.sqrt_ridge * a])
 
 
 def light(basis: DiffuseBasis, r_white, shape):
     """The fitted diffuse image B a* (image units) for the whitened residual r."""
-    return (basis.basis @ coefficients(basis, r_white)).reshape(shape)
+    return basis.image(coefficients(basis, r_white)).reshape(shape)
