@@ -185,8 +185,8 @@ def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None,
             "n_coefficients": {ob.name: int(n) for ob, n in zip(observations, fit.data.n_diffuse)},
             "in": "MODEL of residuals_<FILTER>.fits (profiled out of the fit: inference/diffuse.py)"},
         "timings_s": fit.timings_s, "steps": fit.steps, "host": host,
-        "background": {ob.name: float(fit.state.background_counts_per_s[k])
-                       for k, ob in enumerate(observations)},
+        "background": "in the diffuse light" if fit.data.diffuse is not None else
+        {ob.name: float(fit.state.background_counts_per_s[k]) for k, ob in enumerate(observations)},
         "bands": {ob.name: {"file": ob.path, "units": ob.units, "units_conversion": ob.units_how,
                             "zeropoint_ab": ob.zeropoint_ab, "pixel_arcsec": g.pixel_arcsec,
                             "n_pixels_used": int(ob.mask.sum()),
