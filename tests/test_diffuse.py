@@ -121,7 +121,8 @@ def test_arc_clumps_found_and_measured_with_the_diffuse_light(tmp_path):
     assert main(["fit", scene, "--out", str(tmp_path / "out")]) == 0
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["diffuse"]["n_coefficients"]["F150W"] > 0
-    assert summary["background"] == "in the diffuse light" and "background" not in summary["free_parameters"]
+    assert summary["background"] == "in the diffuse light"
+    assert not any(p.startswith("background") for p in summary["free_parameters"])
     assert 0.9 < summary["chi2_per_dof"]["F150W"] < 1.06
     t = Table.read(tmp_path / "out" / "fit.ecsv")
     found = np.c_[t["x_pix"], t["y_pix"]]
