@@ -70,7 +70,7 @@ def test_chi2_per_dof_does_not_count_huge_sigma_pixels(tmp_path):
 
     class Fit:      # the two things chi2_per_dof reads of a fit
         images = (np.zeros(sci.shape),)
-        data = type("D", (), {"variances": (ob.variance,)})
+        data = type("D", (), {"variances": (ob.variance,), "n_diffuse": (0,)})
         param = type("P", (), {"labels": ()})
     assert ob.mask.sum() == 200
     assert chi2_per_dof([ob], Fit)["F150W"] == pytest.approx(np.mean(sci[10:] ** 2), rel=1e-6)

@@ -53,7 +53,7 @@ from ..errors import require
 from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
 from .catalog import fit_table
-from .likelihood import make_data
+from .likelihood import band_chi2, diffuse_images, make_data
 from .params import Free, FitState, Parametrization, make_state, masked_clumps, parametrize
 from .transforms import Transform
 from .uncertainty import Uncertainty, safe_inverse
@@ -121,6 +121,16 @@ class AutoOptions:
         at least the profile-likelihood bound from refits with its R_e held at other values
         (`_profile`, `profile_sigma`): the Fisher errors assume a quadratic ln L, which fails
         when one axis is unresolved (issue 18: R_e errors 7–13 times too small).
+    diffuse_spacing_arcsec: a smooth diffuse light per band on B-spline nodes this far apart,
+        profiled out of every fit (diffuse.py): the part of an arc or ring that a Sérsic host
+        cannot draw, which the counting would otherwise fill with clumps. It contains the
+        background level, which is then not a parameter. None: no diffuse light.
+    host_re_range_arcsec: (lo, hi) bounds of the host's R_e, or None (free, log). With a
+        diffuse light, a host smaller than its nodes would take the brightest clump
+        (seen on a mock arc): `observations` bounds it below by the node spacing.
+    host: fit a smooth Sérsic host (from the moments, or `host_start`). False: none (an arc
+        whose smooth light is the diffuse light alone; a cuspy Sérsic beside it drew the
+        brightest clump of a mock arc).
     """
 
     max_clumps: int = 20
@@ -138,6 +148,9 @@ class AutoOptions:
     merge: bool = True
     final_shape: bool = True
     profile_errors: bool = True
+    diffuse_spacing_arcsec: Optional[float] = None
+    host_re_range_arcsec: Optional[tuple] = None
+    host: bool = True
 
     def validate(self) -> "AutoOptions":
         require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
@@ -161,6 +174,13 @@ class AutoOptions:
                 self.final_shape, "true or false")
         require(isinstance(self.profile_errors, (bool, np.bool_)), "fit.profile_errors",
                 self.profile_errors, "true or false")
+        require(self.diffuse_spacing_arcsec is None or (np.isfinite(self.diffuse_spacing_arcsec)
+                                                         and self.diffuse_spacing_arcsec > 0),
+                "fit.diffuse_spacing_arcsec", self.diffuse_spacing_arcsec, "a spacing > 0 arcsec")
+        r = self.host_re_range_arcsec
+        require(r is None or (len(r) == 2 and np.all(np.isfinite(r)) and 0 < r[0] < r[1]),
+                "fit.host_re_range_arcsec", r, "(lo, hi) arcsec with 0 < lo < hi")
+        require(isinstance(self.host, (bool, np.bool_)), "fit.host", self.host, "true or false")
         return self
 
     @property
@@ -195,13 +215,17 @@ class AutoFit:
 # ---------------------------------------------------------------------------- set-up
 
 
-def _host_source(host_start, moments, nb):
+def _host_source(host_start, moments, nb, re_range=None):
     if host_start is not None:
         require(host_start.bulge is not None or host_start.disk is not None, "host_start",
                 "no bulge or disk", "a Source with the smooth component(s)")
         return Source(bulge=host_start.bulge, disk=host_start.disk)
     m = moments
-    return Source(bulge=Sersic(jnp.asarray(m["flux"], float).reshape(nb), jnp.asarray(m["re_arcsec"]),
+    re = float(m["re_arcsec"])
+    if re_range is not None:   # strictly inside: a bounded transform has no inverse on its edge
+        lo, hi = re_range
+        re = float(np.clip(re, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo)))
+    return Source(bulge=Sersic(jnp.asarray(m["flux"], float).reshape(nb), jnp.asarray(re),
                                jnp.asarray(m["n"]), jnp.asarray(m["q"]), jnp.asarray(m["pa_rad"]),
                                jnp.asarray(m["center_arcsec"], float)))
 
@@ -213,14 +237,15 @@ def _with_slots(host: Source, cap: int, nb: int, re_max: float, clump_n: float, 
     return Source(bulge=host.bulge, disk=host.disk, clumps=cl)
 
 
-def _host_free(source: Source, box_lo, box_hi):
+def _host_free(source: Source, box_lo, box_hi, re_range=None):
     free = {}
     for name, comp in (("bulge", source.bulge),
                        ("disk.sersic", None if source.disk is None else source.disk.sersic)):
         if comp is None:
             continue
         free[f"{name}.flux"] = True
-        free[f"{name}.re_arcsec"] = True
+        free[f"{name}.re_arcsec"] = True if re_range is None else \
+            Free(True, Transform("log_bounded", *re_range))
         free[f"{name}.n"] = Free(True, Transform("bounded", *HOST_N_RANGE))
         free[f"{name}.q"] = Free(True, Transform("bounded", *CLUMP_Q_RANGE))
         free[f"{name}.pa_rad"] = True
@@ -228,17 +253,20 @@ def _host_free(source: Source, box_lo, box_hi):
     return free
 
 
-def _free(source: Source, re_lo, re_hi, box_lo, box_hi, shape_free: bool):
+def _free(source: Source, re_lo, re_hi, box_lo, box_hi, shape_free: bool, background: bool,
+          host_re_range=None):
     """Free entries; shape_free: every clump's q and PA in the parametrization (fitted for all
-    with fit_shape; for the shape moves, only those of a clump made elliptical)."""
-    free = _host_free(source, box_lo, box_hi)
+    with fit_shape; for the shape moves, only those of a clump made elliptical); background:
+    a level per band (not with a diffuse light, whose span holds it)."""
+    free = _host_free(source, box_lo, box_hi, host_re_range)
     free.update({"clumps.flux": True,
                  "clumps.center_arcsec": Free(True, Transform("bounded", box_lo, box_hi)),
                  "clumps.re_arcsec": Free(True, Transform("log_bounded", re_lo, re_hi))})
     if shape_free:
         free.update({"clumps.q": Free(True, Transform("bounded", *CLUMP_Q_RANGE)),
                      "clumps.pa_rad": True})
-    free["background"] = True
+    if background:
+        free["background"] = True
     return free
 
 
@@ -313,8 +341,10 @@ def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptio
     re_hi = float(opts.re_max_arcsec or RE_MAX_PIXELS * pix)
     re_lo = RE_MIN_FRACTION * re_hi
     moments, sky = seeding.host_from_moments(_GridsOnly(grids), data, variances, masks, lens)
-    host = _host_source(host_start, moments, nb)
-    center = np.asarray((host.bulge or host.disk.sersic).center_arcsec, float)
+    host = _host_source(host_start, moments, nb, opts.host_re_range_arcsec) if opts.host \
+        else Source()
+    center = np.asarray(moments["center_arcsec"] if not opts.host
+                        else (host.bulge or host.disk.sersic).center_arcsec, float)
     src = _with_slots(host, opts.max_clumps, nb, re_hi, opts.clump_n, center)
     model = make_model(src)
     require(tuple(model.band_names) and len(model.layouts) == nb, "make_model", len(model.layouts),
@@ -323,8 +353,11 @@ def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptio
     state = make_state(src, nb, background_counts_per_s=sky - np.array(
         [lay.sky_counts_per_s for lay in model.layouts]))
     shape_moves = _shape_moves(model, opts)
-    param = parametrize(state, _free(src, re_lo, re_hi, lo, hi, opts.fit_shape or shape_moves))
-    idata = make_data(model, data, variances, masks, kind="gaussian")
+    param = parametrize(state, _free(src, re_lo, re_hi, lo, hi, opts.fit_shape or shape_moves,
+                                     background=opts.diffuse_spacing_arcsec is None,
+                                     host_re_range=opts.host_re_range_arcsec))
+    idata = make_data(model, data, variances, masks, kind="gaussian",
+                      diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec)
     k_clump = nb + (5 if opts.fit_shape else 3)
     host_index, slot_index, shape_index = _index_tables(param, opts.max_clumps,
                                                         split_shape=shape_moves)
@@ -455,20 +488,30 @@ def _local_slots(ctx: _Ctx, u, active, new_slot: int, beta):
     return (near + rest)[:n_local]
 
 
+def _predicted(ctx: _Ctx, u, active):
+    return capacity.predict(ctx.model, ctx.param, jnp.asarray(u), jnp.asarray(active, float))
+
+
 def _residuals(ctx: _Ctx, u, active):
-    mu = capacity.predict(ctx.model, ctx.param, jnp.asarray(u), jnp.asarray(active, float))
-    return [np.asarray(d) - np.asarray(m) for d, m in zip(ctx.data.images, mu)]
+    """d − μ per band, less the best diffuse light where there is one (what is left to seed)."""
+    mu = _predicted(ctx, u, active)
+    r = [np.asarray(d) - np.asarray(m) for d, m in zip(ctx.data.images, mu)]
+    if ctx.data.diffuse is not None:
+        r = [a - np.asarray(g) for a, g in zip(r, diffuse_images(mu, ctx.data))]
+    return r
 
 
 def _log_likelihood(ctx: _Ctx, u, active):
-    """ln L at u with the mask `active`, no refit: from `_residuals` (the `predict` program the
-    counting compiles anyway; one program of the whole model fewer than a ln L program)."""
+    """ln L at u with the mask `active`, no refit: from the `predict` program the counting
+    compiles anyway (one program of the whole model fewer than a ln L program)."""
+    if ctx.data.diffuse is not None:
+        return -0.5 * sum(float(c) for c in band_chi2(_predicted(ctx, u, active), ctx.data))
     return -0.5 * sum(float(np.sum(np.asarray(m) * r * r / np.asarray(v))) for r, m, v in
                       zip(_residuals(ctx, u, active), ctx.data.masks, ctx.data.variances))
 
 
 def _chi2_dof(ctx: _Ctx, lnl, n_active):
-    dof = max(ctx.n_pix - ctx.n_host - n_active * ctx.k_clump, 1)
+    dof = max(ctx.n_pix - ctx.n_host - sum(ctx.data.n_diffuse) - n_active * ctx.k_clump, 1)
     return float(-2.0 * lnl / dof)
 
 
@@ -505,8 +548,13 @@ def _fit_host(ctx: _Ctx, u0, steps):
             st = eqx.tree_at(get, st, get(st) * re_scale[s % re_scale.size])
         starts.append(np.asarray(ctx.param.initial(st)))
     active = np.zeros((len(starts), ctx.cap))
-    slots = [list(range(min(LOCAL_SLOTS, ctx.cap)))] * len(starts)
-    us, lnl, ok, n = _fit_local(ctx, np.stack(starts), slots, active)
+    if ctx.host_index.size == 0:    # no host and no background: the diffuse light alone
+        u = np.asarray(u0)
+        us, lnl = u[None], np.array([_log_likelihood(ctx, u, active[0])])
+        ok, n = np.array([True]), np.array([0])
+    else:
+        slots = [list(range(min(LOCAL_SLOTS, ctx.cap)))] * len(starts)
+        us, lnl, ok, n = _fit_local(ctx, np.stack(starts), slots, active)
     b = int(np.argmax(lnl))
     steps.append(dict(step=0, action="host", slot=-1, n_clumps=0, delta_lnL=np.nan,
                       criterion=np.nan, accepted=True, lnL=float(lnl[b]),

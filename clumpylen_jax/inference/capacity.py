@@ -37,7 +37,7 @@ from ..source import Source
 from .likelihood import predicted_images, whitened_residuals
 from .lm import blockwise, held_residuals, levenberg_marquardt
 from .params import clump_rows, masked_clumps, part_blocks
-from .uncertainty import fisher_of, pixel_weights
+from .uncertainty import fisher_for_data
 
 
 def _solve(model, data, param, u0, active, rtol, max_steps):
@@ -167,7 +167,7 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
             light, T_chunks = carry
             (_, l_c), (t_c, _) = _tangents(chunk_residuals(c), v, n_host + c * width, width)
             return tuple(a + b for a, b in zip(light, l_c)), T_chunks.at[c].set(t_c)
-        n_r = sum(f.size for f in fixed)
+        n_r = sum(f.size for f in fixed) + sum(data.n_diffuse)   # whitened_residuals' length
         T0 = jnp.zeros((n_c, width, n_r), v.dtype)
         light, T_chunks = jax.lax.fori_loop(0, n_chunks, add_chunk, (tuple(fixed), T0))
         r, T_host = _tangents(host_residuals(light), v, 0, n_host)
@@ -211,7 +211,7 @@ def fisher_of_rows(model, data, param, u, entries, slots, active):
             state = clump_rows(state, slots)
         return jnp.concatenate([img.ravel() for img in predicted_images(model, state)])
 
-    return fisher_of(model_vector, x[entries], lambda mu: pixel_weights(model, data, mu))
+    return fisher_for_data(model, model_vector, x[entries], data)
 
 
 @eqx.filter_jit

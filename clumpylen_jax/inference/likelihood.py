@@ -16,6 +16,10 @@ Three likelihoods, chosen by `ImageData.kind`:
 
 m is the mask (1 = use the pixel). Multi-band data sum over bands; geometry is
 shared across bands through the source (flux[N, B] per band).
+
+With `ImageData.diffuse` (kind "gaussian" only), each band also carries a smooth diffuse
+light whose coefficients are profiled out (diffuse.py): the residuals, χ² and ln L below
+are those of the best diffuse light for the given μ.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 from jax.scipy.special import gammaln, xlogy
 
 from ..errors import ConfigError, require
+from . import diffuse as _diffuse
 from .params import FitState, Parametrization
 
 KINDS = ("gaussian", "gaussian_model_variance", "poisson")
@@ -42,6 +47,7 @@ class ImageData(eqx.Module):
     variances: tuple [B] of σ² maps ((counts/s)²) or None (only "gaussian" needs them).
     masks: tuple [B] of 0/1 weights (1 = fitted).
     exptime_s: per band (static).  kind: one of KINDS (static).
+    diffuse: tuple [B] of `diffuse.DiffuseBasis`, or None (no diffuse light).
     """
 
     images: tuple
@@ -49,10 +55,18 @@ class ImageData(eqx.Module):
     masks: tuple
     exptime_s: tuple = eqx.field(static=True)
     kind: str = eqx.field(static=True, default="gaussian")
+    diffuse: Optional[tuple] = None
 
     @property
     def n_pixels(self) -> int:
         return int(sum(float(np.sum(np.asarray(m))) for m in self.masks))
+
+    @property
+    def n_diffuse(self) -> tuple:
+        """Free diffuse coefficients per band (0 without diffuse light)."""
+        if self.diffuse is None:
+            return (0,) * len(self.images)
+        return tuple(b.n_coefficients for b in self.diffuse)
 
 
 def read_image(x, hdu=None) -> np.ndarray:
@@ -84,13 +98,23 @@ def _per_band(value, names, what):
 
 
 def make_data(scene_model, images, variances=None, mask=None, *, kind="gaussian",
-              dtype=jnp.float64) -> ImageData:
+              dtype=jnp.float64, diffuse_spacing_arcsec=None) -> ImageData:
     """ImageData for `scene_model` from images (dict band → array/FITS, sequence, or one array).
 
     variances: same forms (σ² maps) — required for kind="gaussian".
     mask: same forms, or one array for all bands; True/1 = pixel used. None: all pixels.
+    diffuse_spacing_arcsec: node spacing of a diffuse light profiled out of the fit
+        (diffuse.py; at least `diffuse.MIN_SPACING_PIX` of every band's pixels), or None.
     """
     require(kind in KINDS, "likelihood", kind, " or ".join(KINDS))
+    if diffuse_spacing_arcsec is not None:
+        require(kind == "gaussian", "likelihood", kind, '"gaussian" with a diffuse light')
+        coarsest = max(lay.grid.pixel_arcsec for lay in scene_model.layouts)
+        require(np.isfinite(diffuse_spacing_arcsec)
+                and diffuse_spacing_arcsec >= _diffuse.MIN_SPACING_PIX * coarsest,
+                "diffuse_spacing_arcsec", diffuse_spacing_arcsec,
+                f"≥ {_diffuse.MIN_SPACING_PIX:g} pixels of every band "
+                f"({_diffuse.MIN_SPACING_PIX * coarsest:.3g} arcsec)")
     names = scene_model.band_names
     imgs = [read_image(x) for x in _per_band(images, names, "images")]
     shapes = [lay.grid.shape for lay in scene_model.layouts]
@@ -120,7 +144,12 @@ def make_data(scene_model, images, variances=None, mask=None, *, kind="gaussian"
     imgs = [np.where(np.isfinite(img), img, 0.0) for img in imgs]
     exptimes = tuple(float(lay.exptime_s) for lay in scene_model.layouts)
     to = lambda seq: tuple(jnp.asarray(a, dtype) for a in seq)  # noqa: E731
-    return ImageData(to(imgs), None if var is None else to(var), to(masks), exptimes, kind)
+    bases = None
+    if diffuse_spacing_arcsec is not None:
+        bases = tuple(_diffuse.make_basis(img.shape, diffuse_spacing_arcsec / lay.grid.pixel_arcsec,
+                                          v, m, dtype)
+                      for img, v, m, lay in zip(imgs, var, masks, scene_model.layouts))
+    return ImageData(to(imgs), None if var is None else to(var), to(masks), exptimes, kind, bases)
 
 
 def predicted_images(scene_model, state: FitState):
@@ -144,6 +173,8 @@ def band_log_likelihood(mu, d, m, var, exptime_s: float, kind: str):
 
 def log_likelihood_images(model_images, data: ImageData):
     """ln L of predicted images μ (tuple over bands) for `data`."""
+    if data.diffuse is not None:    # "gaussian" (make_data): profiled over the diffuse light
+        return -0.5 * sum(band_chi2(model_images, data))
     total = 0.0
     for k, mu in enumerate(model_images):
         var = None if data.variances is None else data.variances[k]
@@ -186,12 +217,35 @@ def make_log_posterior(scene_model, data: ImageData, param: Parametrization, *,
 
 
 def whitened_residuals(model_images, data: ImageData):
-    """√m (d − μ)/σ over all bands, flattened: Gaussian ln L = −½ |r|² (fixed variances only)."""
+    """√m (d − μ)/σ over all bands, flattened: Gaussian ln L = −½ |r|² (fixed variances only).
+    With a diffuse light, each band's part is `diffuse.profiled_residual` (K entries longer)."""
     if data.kind != "gaussian":
         raise ConfigError("likelihood", data.kind, '"gaussian" (fixed variances) for residual fits')
-    parts = [jnp.sqrt(m) * (d - mu) / jnp.sqrt(v) for mu, d, m, v in
+    parts = [(jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel() for mu, d, m, v in
              zip(model_images, data.images, data.masks, data.variances)]
-    return jnp.concatenate([p.ravel() for p in parts])
+    if data.diffuse is not None:
+        parts = [_diffuse.profiled_residual(b, p) for b, p in zip(data.diffuse, parts)]
+    return jnp.concatenate(parts)
+
+
+def diffuse_images(model_images, data: ImageData):
+    """The best diffuse light per band for predicted images μ (zeros without one)."""
+    if data.diffuse is None:
+        return tuple(jnp.zeros_like(d) for d in data.images)
+    return tuple(_diffuse.light(b, (jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel(), d.shape)
+                 for b, mu, d, m, v in zip(data.diffuse, model_images, data.images, data.masks,
+                                           data.variances))
+
+
+def band_chi2(model_images, data: ImageData) -> list:
+    """χ² per band of predicted images μ (fixed variances), profiled over the diffuse light."""
+    out = []
+    for k, (mu, d, m, v) in enumerate(zip(model_images, data.images, data.masks, data.variances)):
+        r = (jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel()
+        if data.diffuse is not None:
+            r = _diffuse.profiled_residual(data.diffuse[k], r)
+        out.append(jnp.sum(r * r))
+    return out
 
 
 def make_residuals(scene_model, data: ImageData, param: Parametrization) -> Callable:

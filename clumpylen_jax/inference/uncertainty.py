@@ -28,7 +28,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .likelihood import ImageData, make_log_posterior, predicted_images
+from .likelihood import ImageData, make_log_posterior, predicted_images, whitened_residuals
 from .params import Parametrization, masked_clumps
 
 
@@ -101,10 +101,35 @@ def fisher_of(model_vector, x, weights):
     return (jac * weights(mu)[:, None]).T @ jac
 
 
+def fisher_of_residuals(residuals, x):
+    """JᵀJ with J = ∂residuals/∂x: the Fisher matrix where the whitened residual vector is the
+    likelihood's (with a diffuse light profiled out: the marginal Fisher matrix of x)."""
+    jac = jax.jacfwd(residuals)(x)
+    return jac.T @ jac
+
+
+def _images_of_vector(scene_model, vector):
+    out, start = [], 0
+    for lay in scene_model.layouts:
+        size = lay.grid.shape[0] * lay.grid.shape[1]
+        out.append(vector[start:start + size].reshape(lay.grid.shape))
+        start += size
+    return tuple(out)
+
+
+def fisher_for_data(scene_model, model_vector, x, data: Optional[ImageData]):
+    """Fisher matrix of model_vector's parameters x for `data`: Jᵀ W J per pixel, or through
+    the profiled residuals where `data` has a diffuse light."""
+    if data is not None and data.diffuse is not None:
+        return fisher_of_residuals(lambda xx: whitened_residuals(
+            _images_of_vector(scene_model, model_vector(xx)), data), x)
+    return fisher_of(model_vector, x, lambda mu: pixel_weights(scene_model, data, mu))
+
+
 @eqx.filter_jit
 def _fisher(scene_model, data, param, x, active):
-    return fisher_of(lambda xx: _model_vector(scene_model, param, xx, active), x,
-                     lambda mu: pixel_weights(scene_model, data, mu))
+    return fisher_for_data(scene_model, lambda xx: _model_vector(scene_model, param, xx, active),
+                           x, data)
 
 
 def fisher_matrix(scene_model, param: Parametrization, x=None, data: Optional[ImageData] = None,

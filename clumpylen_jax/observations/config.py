@@ -52,6 +52,11 @@ class FitOptions:
         for it); clump_re_min_arcsec the smallest.
     host: "sersic" (one smooth Sérsic, free in every band) or "none".
     background: fit a constant level per band.  psf_oversampling: odd sub-grid factor.
+    diffuse_spacing_arcsec: a smooth diffuse light per band, on cubic B-spline nodes this far
+        apart (at least 4 pixels of the coarsest band), fitted with the host and clumps and
+        profiled out of the likelihood (`inference.diffuse`): for arcs and rings that one
+        Sérsic cannot draw. It holds the background level (not fitted separately then).
+        None (default): no diffuse light.
     detection_snr: a band detects a clump when flux/σ_flux ≥ this (else: upper limit).
     """
 
@@ -67,6 +72,7 @@ class FitOptions:
     psf_oversampling: int = 1
     detection_snr: float = 3.0
     max_steps: int = 200
+    diffuse_spacing_arcsec: Optional[float] = None
 
     def validate(self):
         def need(ok, key, expected):
@@ -92,6 +98,9 @@ class FitOptions:
         need(_num(self.detection_snr) and self.detection_snr > 0, "detection_snr", "a positive S/N")
         need(isinstance(self.max_steps, int) and 1 <= self.max_steps <= 10000, "max_steps",
              "an integer in [1, 10000]")
+        need(self.diffuse_spacing_arcsec is None or (_num(self.diffuse_spacing_arcsec)
+                                                     and self.diffuse_spacing_arcsec > 0),
+             "diffuse_spacing_arcsec", "a node spacing > 0 arcsec")
         return self
 
 

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
-from ..inference.likelihood import make_data, predicted_images
+from ..inference.likelihood import band_chi2, diffuse_images, make_data, predicted_images
 from ..inference.optimize import fit_map
 from ..inference.params import Free, make_state, parametrize
 from ..inference.transforms import IDENTITY, LOG, Transform
@@ -114,15 +114,22 @@ def host_start(observations, frame) -> Sersic:
                   center_arcsec=f([cx, cy]))
 
 
-def _host_re_bounds(frame):
+def host_re_bounds(frame, diffuse_spacing_arcsec=None):
+    """(lo, hi) of the host's R_e (arcsec): half a pixel to half the image's diagonal; with a
+    diffuse light, at least its node spacing (a smaller host would draw the brightest clump,
+    the diffuse light the rest of the arc)."""
     g0 = frame.grids[0]
-    return 0.5 * min(g.pixel_arcsec for g in frame.grids), 0.5 * np.hypot(*g0.shape) * g0.pixel_arcsec
+    lo = 0.5 * min(g.pixel_arcsec for g in frame.grids)
+    hi = 0.5 * np.hypot(*g0.shape) * g0.pixel_arcsec
+    if diffuse_spacing_arcsec is not None:
+        lo = max(lo, min(float(diffuse_spacing_arcsec), 0.5 * hi))
+    return lo, hi
 
 
-def host_within_bounds(host: Sersic, frame) -> Sersic:
+def host_within_bounds(host: Sersic, frame, options) -> Sersic:
     """A host start (e.g. the auto fit's, fitted under other bounds) moved just inside this
     fit's bounds: a bounded transform has no inverse on its edge."""
-    lo, hi = _host_re_bounds(frame)
+    lo, hi = host_re_bounds(frame, options.diffuse_spacing_arcsec)
     f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
     inside = lambda v, a, b: f(np.clip(np.asarray(v, float), a + 1e-6 * (b - a), b - 1e-6 * (b - a)))  # noqa: E731
     flux = np.asarray(host.flux, float)     # positive here (log transform); free in auto
@@ -149,7 +156,7 @@ def make_model_factory(observations, frame, options):
     acc = Accuracy(psf_oversampling=options.psf_oversampling, stamp_flux_fraction=0.999,
                    clump_pixels=fit_clump_pixels(options.clump_n, options.clump_shape == "round",
                                                  lensed=False))
-    host_lo, host_hi = _host_re_bounds(frame)
+    host_lo, host_hi = host_re_bounds(frame, options.diffuse_spacing_arcsec)
 
     def make_model(source: Source):
         tmpl = source
@@ -170,7 +177,7 @@ def make_model_factory(observations, frame, options):
 
 def free_parameters(source: Source, frame, options, *, clumps=True) -> dict:
     """The `free` mapping: host (flux, R_e, n, q, PA, centre), clumps, background."""
-    lo, hi = _host_re_bounds(frame)
+    lo, hi = host_re_bounds(frame, options.diffuse_spacing_arcsec)
     free = {}
     if source.bulge is not None:
         free.update({"bulge.flux": Free(True, LOG),
@@ -192,21 +199,24 @@ def free_parameters(source: Source, frame, options, *, clumps=True) -> dict:
         if options.clump_shape == "elliptical":
             free.update({"clumps.q": Free(True, Transform("bounded", CLUMP_Q_MIN, 1.0)),
                          "clumps.pa_rad": True})
-    if options.background:
+    if options.background and options.diffuse_spacing_arcsec is None:   # else in the diffuse light
         free["background"] = True
     return free
 
 
 def _chi2(model, data, state):
+    """(χ² per band, μ per band with the fitted diffuse light, numpy)."""
     mu = predicted_images(model, state)
-    return [float(jnp.sum(m * (d - p) ** 2 / v)) for p, d, m, v in
-            zip(mu, data.images, data.masks, data.variances)], [np.asarray(p) for p in mu]
+    light = diffuse_images(mu, data)
+    return ([float(c) for c in band_chi2(mu, data)],
+            [np.asarray(p) + np.asarray(g) for p, g in zip(mu, light)])
 
 
-def _data(model, observations, mu=None):
+def _data(model, observations, mu=None, diffuse_spacing_arcsec=None):
     var = [ob.variance_for(None if mu is None else mu[k]) for k, ob in enumerate(observations)]
     return make_data(model, [ob.data for ob in observations], var,
-                     [ob.mask.astype(float) for ob in observations])
+                     [ob.mask.astype(float) for ob in observations],
+                     diffuse_spacing_arcsec=diffuse_spacing_arcsec)
 
 
 class _StageResult(eqx.Module):
@@ -225,7 +235,7 @@ def _uncertainty_from_jacobian(param, u, jac):
 
 
 def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
-              max_steps=200, solver="lm"):
+              max_steps=200, solver="lm", diffuse_spacing_arcsec=None):
     """One fit; appends a record to `steps`; returns (result, param, data, μ).
 
     solver: "lm" (lm.py: one Jacobian per step, errors from the last one) or
@@ -233,7 +243,7 @@ def run_stage(name, model, observations, source, free, steps, *, mu=None, backgr
     benchmarks/bench_optimizers.py."""
     t0 = time.perf_counter()
     c0 = time.process_time()
-    data = _data(model, observations, mu)
+    data = _data(model, observations, mu, diffuse_spacing_arcsec)
     state0 = make_state(source, len(observations), background_counts_per_s=background)
     param = parametrize(state0, free)
     if solver == "lm":
@@ -274,12 +284,14 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
     timings, steps = {}, []
     make_model = make_model_factory(observations, frame, options)
     host = host_start(observations, frame) if options.host == "sersic" else None
+    if host is not None and options.diffuse_spacing_arcsec is not None:   # R_e bounded below
+        host = host_within_bounds(host, frame, options)
     nb = len(observations)
     bg = np.zeros(nb)
     mu = None
     warm = clump_starts is not None and clump_starts.get("host") is not None and host is not None
     if warm:    # a host already fitted with these clumps (auto): no host-only stage
-        host = host_within_bounds(clump_starts["host"], frame)
+        host = host_within_bounds(clump_starts["host"], frame, options)
         bg = np.asarray(clump_starts.get("background", bg), float)
     elif host is not None:
         t0 = time.perf_counter()
@@ -288,7 +300,8 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
         timings["build_host_model"] = time.perf_counter() - t0
         res, param, data, mu = run_stage("host", model, observations, src,
                                          free_parameters(src, frame, options), steps,
-                                         max_steps=options.max_steps, solver=solver)
+                                         max_steps=options.max_steps, solver=solver,
+                                         diffuse_spacing_arcsec=options.diffuse_spacing_arcsec)
         host = res.state.source.bulge
         bg = np.asarray(res.state.background_counts_per_s)
     n = 0 if clump_starts is None else len(clump_starts["phi"])
@@ -314,12 +327,13 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
     noise_model = any(ob.noise_exptime_s is not None for ob in observations)
     res, param, data, mu_new = run_stage("joint", model, observations, src, free, steps,
                                          mu=mu if noise_model else None, background=bg,
-                                         max_steps=options.max_steps, solver=solver)
+                                         max_steps=options.max_steps, solver=solver,
+                                         diffuse_spacing_arcsec=options.diffuse_spacing_arcsec)
     if noise_model:   # σ² from the fitted model, then once more
         res, param, data, mu_new = run_stage(
             "joint (variance from model)", model, observations, res.state.source, free, steps,
             mu=mu_new, background=res.state.background_counts_per_s, max_steps=options.max_steps,
-            solver=solver)
+            solver=solver, diffuse_spacing_arcsec=options.diffuse_spacing_arcsec)
     unc = res.uncertainty
     timings["total"] = time.perf_counter() - t_start
     timings["cpu_total"] = time.process_time() - c_start

@@ -151,14 +151,15 @@ def write_png(path: Path, observations, fit, table, frame, lens=None) -> Path:
 
 
 def chi2_per_dof(observations, fit) -> dict:
-    """χ²/dof per band (dof: the band's used pixels less its share of the free parameters)."""
+    """χ²/dof per band (dof: the band's used pixels less its share of the free parameters and
+    its own diffuse-light coefficients)."""
     n_free = len(fit.param.labels)
     n_pix = [int(ob.mask.sum()) for ob in observations]
     total = sum(n_pix)
     out = {}
     for k, ob in enumerate(observations):
         chi2 = float(np.nansum(chi_map(ob, fit, k) ** 2))
-        dof = max(n_pix[k] - n_free * n_pix[k] / total, 1.0)
+        dof = max(n_pix[k] - n_free * n_pix[k] / total - fit.data.n_diffuse[k], 1.0)
         out[ob.name] = chi2 / dof
     return out
 
@@ -179,9 +180,13 @@ def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None,
         "scene": scene.name, "path": scene.path, "success": bool(fit.success),
         "n_clumps": int(fit.n_clumps), "chi2_per_dof": chi2_per_dof(observations, fit),
         "free_parameters": list(fit.param.labels), "n_free": len(fit.param.labels),
+        "diffuse": None if fit.data.diffuse is None else {
+            "spacing_arcsec": scene.fit.diffuse_spacing_arcsec,
+            "n_coefficients": {ob.name: int(n) for ob, n in zip(observations, fit.data.n_diffuse)},
+            "in": "MODEL of residuals_<FILTER>.fits (profiled out of the fit: inference/diffuse.py)"},
         "timings_s": fit.timings_s, "steps": fit.steps, "host": host,
-        "background": {ob.name: float(fit.state.background_counts_per_s[k])
-                       for k, ob in enumerate(observations)},
+        "background": "in the diffuse light" if fit.data.diffuse is not None else
+        {ob.name: float(fit.state.background_counts_per_s[k]) for k, ob in enumerate(observations)},
         "bands": {ob.name: {"file": ob.path, "units": ob.units, "units_conversion": ob.units_how,
                             "zeropoint_ab": ob.zeropoint_ab, "pixel_arcsec": g.pixel_arcsec,
                             "n_pixels_used": int(ob.mask.sum()),

@@ -40,6 +40,19 @@ def read_scene_data(scene: ObservationScene):
     return obs, frame
 
 
+def check_diffuse_spacing(spacing_arcsec, frame):
+    """The diffuse light's nodes at least `diffuse.MIN_SPACING_PIX` pixels apart in every band
+    (closer ones would draw clumps): checked before anything compiles."""
+    from ..inference.diffuse import MIN_SPACING_PIX
+    if spacing_arcsec is None:
+        return
+    coarsest = max(g.pixel_arcsec for g in frame.grids)
+    if spacing_arcsec < MIN_SPACING_PIX * coarsest:
+        raise ConfigError("fit.diffuse_spacing_arcsec", spacing_arcsec,
+                          f"at least {MIN_SPACING_PIX:g} pixels of the coarsest band "
+                          f"(≥ {MIN_SPACING_PIX * coarsest:.3g} arcsec)")
+
+
 def catalogue_starts(path: str, frame) -> dict:
     """Clump starting guesses from a catalogue (ECSV/CSV/FITS table): positions as x_pix/y_pix
     (first observation, 0-based), ra_deg/dec_deg or theta1_arcsec/theta2_arcsec; optional
@@ -76,7 +89,7 @@ def auto_starts(observations, frame, scene) -> dict:
     import dataclasses
 
     from ..inference.auto import AutoOptions, fit_without_truth
-    from .fit import make_model_factory
+    from .fit import host_re_bounds, make_model_factory
     opts = scene.fit
     if opts.max_clumps == 0:
         return None
@@ -86,7 +99,10 @@ def auto_starts(observations, frame, scene) -> dict:
     # a looser tolerance (AUTO_RTOL): the joint fit refits every parameter from this optimum
     wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
                   clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps, errors=False,
-                  merge=False, rtol=AUTO_RTOL)
+                  merge=False, rtol=AUTO_RTOL, diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec,
+                  host_re_range_arcsec=None if opts.diffuse_spacing_arcsec is None
+                  else host_re_bounds(frame, opts.diffuse_spacing_arcsec),
+                  host=opts.host == "sersic")
     names = {f.name for f in dataclasses.fields(AutoOptions)}
     auto = fit_without_truth(make_model_factory(observations, frame, opts),
                              # with a noise model, σ² from the data (rms² + max(d, 0)/t): its
@@ -113,6 +129,7 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         scene = load_observation_scene(str(scene))
     t0 = time.perf_counter()
     obs, frame = read_scene_data(scene)
+    check_diffuse_spacing(scene.fit.diffuse_spacing_arcsec, frame)
     lens = place_lens(scene, frame)
     read_s = time.perf_counter() - t0
     opts = scene.fit
