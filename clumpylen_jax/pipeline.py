@@ -509,7 +509,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 7 + len(scene.bands) + 8
+    n_stages = 7 + len(scene.bands) + 9
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     if programs is None:
@@ -591,8 +591,9 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     hr, later_hr = early.get("hr") or (None, None)
     hr_written = (writer.submit(_write_hr_unlensed_stage, prep, prog, out, hr, later_hr)
                   if later_hr is not None else None)
+    later_noise = pool.submit(_noise_program, prep, prog) if scene.output.noise else None
     with prog.stage("render (compile + run)"):
-        (noisy, clean, var), hr_lensed, mags = _render_bands(prep, hr)
+        (noisy, clean, var), hr_lensed, mags = _render_bands(prep, hr, later_noise)
     lensed_written = (writer.submit(_write_hr_lensed_stage, prep, prog, out, hr, hr_lensed)
                       if hr_lensed is not None else None)
     unlensed, unl_model = [None] * len(scene.bands), None
@@ -636,27 +637,48 @@ def _import_writing_modules(figures: bool):
         rgbimage._pyplot()
 
 
-def _render_bands(prep: Prepared, hr):
+def _render_bands(prep: Prepared, hr, later_noise=None):
     """((noisy, noiseless, variance) images per band [counts/s] as numpy arrays, the
     high-resolution lens-plane images of `hr`'s source or None, and the clumps'
-    magnifications or None: unlensed or no clumps); without noise the 'noisy' images are
-    the noiseless ones. One program (`_band_render`) makes the three."""
+    magnifications or None: unlensed or no clumps); without noise (`later_noise`: the
+    launched `_noise_program`, None) the 'noisy' images are the noiseless ones. One program
+    (`_band_render`) makes the noiseless images, the lens plane and the magnifications,
+    a second one (`_band_noise`, compiled beside it in the background) the noise."""
     scene, model, table = prep.scene, prep.model, prep.catalog
-    key = jax.random.key(scene.seed) if scene.output.noise else None
     # the high-resolution lens plane comes from the band render's own program: the host's
     # light at the traced pixels (per unit flux) and the rays are computed once for both
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
     magnify = bool(table is not None and len(table) and model.lensed)
-    bands_out, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
-                                          _with_host_light(prep.programs, model, prep.source),
-                                          prep.source, key, hr_fluxes, magnify)
-    if scene.output.noise:
-        noisy, clean, var = bands_out
-    else:
-        clean = bands_out
-        noisy, var = clean, model.variances(clean)
+    clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
+                                      _with_host_light(prep.programs, model, prep.source),
+                                      prep.source, hr_fluxes, magnify)
+    noisy = clean if later_noise is None else \
+        later_noise.result()(jax.random.key(scene.seed), clean)
+    var = model.variances(clean)
     return (tuple([np.asarray(x) for x in imgs] for imgs in (noisy, clean, var)), hr_lensed,
             None if mags is None else np.asarray(mags))
+
+
+def _noise_program(prep: Prepared, prog: _Progress):
+    """`_band_noise` of the model's bands as a function (key, noiseless images) → noisy
+    images, loaded or compiled now from the images' shapes: launched in the background, it
+    compiles beside the band render (JAX's Poisson sampler is a fifth of that program)."""
+    with prog.stage("noise (compile)"):
+        model = prep.model
+        like = tuple(jnp.zeros(det.grid.shape, prep.dtype) for det in model.layouts)
+        from . import programcache
+        return programcache.compiled(
+            "band_noise", _band_noise, jax.random.key(0), like,
+            tuple(det.name for det in model.layouts),
+            tuple(det.exptime_s for det in model.layouts), model.accuracy.gaussian_noise_above,
+            folder=prep.programs)
+
+
+def _band_noise(key, clean, names, exptimes_s, gaussian_above_counts):
+    """Photon noise of noiseless band images (with sky, counts/s), as `SceneModel.observe`
+    draws it (`noise.add_photon_noise_bands`)."""
+    from . import noise
+    return noise.add_photon_noise_bands(key, clean, names, exptimes_s, gaussian_above_counts)
 
 
 def _write_band(out: Path, prep: Prepared, k: int, noisy, clean, var, unlensed, unl_model) -> dict:
@@ -740,13 +762,13 @@ def _summary(prep: Prepared, summary_bands: dict, table, hr_info) -> dict:
     }
 
 
-def _band_render(model, source, key, hr_fluxes, magnify: bool):
-    """The band render (`observe` with a noise key, else `noiseless`), given hr_fluxes the
-    high-resolution lens-plane images (`lens_plane`) of the source with those fluxes, and
-    with `magnify` the clumps' magnifications, as one program: the work they share (host
-    light per unit flux at the traced pixels, rays, the clumps' stamps) is done once, and
-    one program is compiled and loaded instead of three."""
-    bands = model.noiseless(source) if key is None else model.observe(source, key)
+def _band_render(model, source, hr_fluxes, magnify: bool):
+    """The noiseless band images (`noiseless`), given hr_fluxes the high-resolution
+    lens-plane images (`lens_plane`) of the source with those fluxes, and with `magnify` the
+    clumps' magnifications, as one program: the work they share (host light per unit flux at
+    the traced pixels, rays, the clumps' stamps) is done once, and one program is compiled
+    and loaded instead of three."""
+    bands = model.noiseless(source)
     hr = None if hr_fluxes is None else model.lens_plane(_with_fluxes(source, hr_fluxes))
     mags = model.clump_magnifications(source, beside_band_images=True) if magnify else None
     return bands, hr, mags

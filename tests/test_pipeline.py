@@ -170,3 +170,21 @@ def test_programs_without_lens_are_launched_before_the_lens_is_traced(tmp_path, 
         monkeypatch.setattr(pipeline, name, recorded)
     pipeline.simulate("single-sersic", tmp_path / "run", progress=False)
     assert order == ["launch", "lens"]
+
+
+def test_noise_program_draws_what_observe_draws():
+    """The photon noise is drawn by a program of its own (`_noise_program`, compiled beside
+    the band render) from the band render's noiseless images: the same images, to the bit,
+    as `SceneModel.observe` draws in one program."""
+    import equinox as eqx
+    import jax
+
+    from clumpylen_jax import scene as sc
+
+    prep = pipeline.prepare(sc.load_scene("single-sersic"))
+    key = jax.random.key(prep.scene.seed)
+    noisy, clean, _ = eqx.filter_jit(lambda m, s, k: m.observe(s, k))(prep.model, prep.source, key)
+    drawn = pipeline._noise_program(prep, pipeline._Progress(False, 1))(key, clean)
+    assert len(drawn) == len(noisy)
+    for a, b in zip(noisy, drawn):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
