@@ -30,7 +30,8 @@ is called or, from the cache, the one stored after that compilation: the images 
 for bit the same in each case. A stored program is compiled with JAX's persistent cache
 off where JAX's cache held it (`_compile_own`), and a stored one that fails its first call
 is compiled again. `function` gives the same program as a function, loaded or compiled
-once for many calls of one shape.
+once for many calls of one shape; `compiled` loads or compiles it at once (in a background
+thread, before the values it will be called with exist).
 
 Reading ahead (`ReadAhead`): a run that asks for the same programs as the last run with
 the same hint (e.g. the same resolved scene) finds them loaded already. The files that
