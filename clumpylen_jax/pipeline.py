@@ -358,11 +358,14 @@ def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, 
 
 
 def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
-            programs=None) -> Prepared:
+            programs=None, on_source=None) -> Prepared:
     """Population, photometry, lens, PSFs and the model of a scene (no rendering yet).
 
     programs: where compiled programs are kept (`programcache`: a folder or a `ReadAhead`
-    of it); None: the cache folder's programs/ unless the cache is off."""
+    of it); None: the cache folder's programs/ unless the cache is off.
+    on_source: called with a `Prepared` whose lens, field and model are still None as soon
+    as the source, its catalogue and the bands are made, before the lens is traced (so
+    that work which needs no lens, e.g. compiling the unlensed programs, overlaps it)."""
     progress = progress or _Progress(False, 1)
     programs = _program_folder() if programs is None else programs
     model_mod.require_float64_mode(scene.render.dtype)
@@ -381,6 +384,9 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
                                                                 dtype, progress, programs)
         with progress.stage("bands and PSFs (wait)"):
             bands = later_bands.result()
+    if on_source is not None:
+        on_source(Prepared(scene, source, table, None, bands, zps, None, None, accuracy, dtype,
+                           host_masses, progress.timings, programs))
     with progress.stage("lens"):
         lens = build_lens(scene, cosmology)
         field = _field(scene, lens, source, accuracy)
@@ -508,23 +514,43 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     t_start = time.perf_counter()
     if programs is None:
         programs = read_ahead(scene)
-    prep = prepare(scene, progress=prog, programs=programs)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bands").mkdir(exist_ok=True)
-    # The programs after the band render (unlensed bands, high-resolution images, clump
+    # The programs besides the band render (unlensed bands, high-resolution images, clump
     # magnifications) are loaded or compiled and launched in a background thread while this
-    # one runs and writes the band render: JAX runs them asynchronously, so their loading,
-    # compilation and running overlap the main thread's work. Same programs, same inputs:
-    # the same images as one after the other.
+    # one traces the lens and runs and writes the band render: JAX runs them asynchronously,
+    # so their loading, compilation and running overlap the main thread's work. Same
+    # programs, same inputs: the same images as one after the other. Those that need no
+    # lens (unlensed, high-resolution source plane) are launched as soon as the source is
+    # made (`_launch_unlensed_early`), so that a first run compiles them while the lens is
+    # traced.
     # The high-resolution products are written by a thread of their own (their FITS files
     # and colour arrays beside the band files; figures are drawn one at a time).
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-launch")
     writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-write-hr")
+    early = {}
     try:
-        return _simulate_launched(prep, prog, pool, writer, out, t_start)
+        prep = prepare(scene, progress=prog, programs=programs,
+                       on_source=lambda src: early.update(_launch_early(src, prog, pool, out)))
+        return _simulate_launched(prep, prog, pool, writer, out, t_start, early)
     finally:
         writer.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _launch_early(prep: Prepared, prog: _Progress, pool, out: Path) -> dict:
+    """The launches that need no lens, submitted to `pool` from a `prepare` whose lens and
+    model are not made yet: {"unlensed": future or None, "hr": (the high-resolution source
+    as `_hr_source` gives it, its future) or None}."""
+    scene = prep.scene
+    later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
+    hr = None
+    if scene.output.hr:
+        with prog.stage("high-resolution photometry"):
+            hr = _hr_source(prep)
+        (out / "hr").mkdir(exist_ok=True)
+    return {"unlensed": later_unl,
+            "hr": None if hr is None else (hr, pool.submit(_launch_hr, prep, prog, hr))}
 
 
 def _launch_unlensed(prep: Prepared, prog: _Progress):
@@ -541,11 +567,6 @@ def _launch_unlensed(prep: Prepared, prog: _Progress):
                                     'band_images', prep.source)
 
 
-def _launch_magnifications(prep: Prepared, prog: _Progress):
-    with prog.stage("catalogue (launch)"):
-        return _jit_call(prep.programs, prep.model, 'clump_magnifications', prep.source)
-
-
 def _write_hr_unlensed_stage(prep, prog, out, hr, later_hr):
     with prog.stage("high-resolution images (unlensed)"):
         return _write_hr_unlensed(prep, out, hr, later_hr)
@@ -556,27 +577,23 @@ def _write_hr_lensed_stage(prep, prog, out, hr, hr_lensed):
         _write_hr_lensed(prep, out, hr, hr_lensed)
 
 
-def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start) -> dict:
-    """The stages of `simulate` after `prepare`: programs launched in `pool`, the
-    high-resolution products written by `writer`, the rest here; returns the summary."""
+def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start,
+                       early: dict) -> dict:
+    """The stages of `simulate` after `prepare`: programs launched in `pool` (those that
+    need no lens already, `early`: `_launch_early`'s), the high-resolution products written
+    by `writer`, the rest here; returns the summary."""
     scene, model, table = prep.scene, prep.model, prep.catalog
     # the writer thread imports what writing needs, off the main thread's path, then writes
     # the high-resolution unlensed products as soon as the source plane is done (during the
     # band render) and the lensed ones after the band render
     writer.submit(_import_writing_modules, bool(scene.output.rgb or scene.output.hr))
-    later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
-    hr = None
-    if scene.output.hr:
-        with prog.stage("high-resolution photometry"):
-            hr = _hr_source(prep)
-        (out / "hr").mkdir(exist_ok=True)
-    later_hr = pool.submit(_launch_hr, prep, prog, hr) if hr is not None else None
+    later_unl = early.get("unlensed")
+    hr, later_hr = early.get("hr") or (None, None)
     hr_written = (writer.submit(_write_hr_unlensed_stage, prep, prog, out, hr, later_hr)
                   if later_hr is not None else None)
-    later_mag = (pool.submit(_launch_magnifications, prep, prog)
-                 if table is not None and len(table) and model.lensed else None)
+    later_noise = pool.submit(_noise_program, prep, prog) if scene.output.noise else None
     with prog.stage("render (compile + run)"):
-        (noisy, clean, var), hr_lensed = _render_bands(prep, hr)
+        (noisy, clean, var), hr_lensed, mags = _render_bands(prep, hr, later_noise)
     lensed_written = (writer.submit(_write_hr_lensed_stage, prep, prog, out, hr, hr_lensed)
                       if hr_lensed is not None else None)
     unlensed, unl_model = [None] * len(scene.bands), None
@@ -599,7 +616,7 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
             if lensed_written is not None:
                 lensed_written.result()
     with prog.stage("catalogue"):
-        table = _write_catalogue(out, prep, later_mag)
+        table = _write_catalogue(out, prep, mags)
     summary = _summary(prep, summary_bands, table, hr_info)
     summary["timings_s"] = dict(prog.timings, total=round(time.perf_counter() - t_start, 3))
     summary["timings_split_s"] = prog.clock.split()
@@ -620,24 +637,48 @@ def _import_writing_modules(figures: bool):
         rgbimage._pyplot()
 
 
-def _render_bands(prep: Prepared, hr):
-    """((noisy, noiseless, variance) images per band [counts/s] as numpy arrays, and the
-    high-resolution lens-plane images of `hr`'s source or None); without noise the 'noisy'
-    images are the noiseless ones. One program (`_band_render`) makes both."""
-    scene, model = prep.scene, prep.model
-    key = jax.random.key(scene.seed) if scene.output.noise else None
+def _render_bands(prep: Prepared, hr, later_noise=None):
+    """((noisy, noiseless, variance) images per band [counts/s] as numpy arrays, the
+    high-resolution lens-plane images of `hr`'s source or None, and the clumps'
+    magnifications or None: unlensed or no clumps); without noise (`later_noise`: the
+    launched `_noise_program`, None) the 'noisy' images are the noiseless ones. One program
+    (`_band_render`) makes the noiseless images, the lens plane and the magnifications,
+    a second one (`_band_noise`, compiled beside it in the background) the noise."""
+    scene, model, table = prep.scene, prep.model, prep.catalog
     # the high-resolution lens plane comes from the band render's own program: the host's
     # light at the traced pixels (per unit flux) and the rays are computed once for both
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
-    bands_out, hr_lensed = _program(prep.programs, "SceneModel.band_render", _band_render,
-                                    _with_host_light(prep.programs, model, prep.source),
-                                    prep.source, key, hr_fluxes)
-    if scene.output.noise:
-        noisy, clean, var = bands_out
-    else:
-        clean = bands_out
-        noisy, var = clean, model.variances(clean)
-    return tuple([np.asarray(x) for x in imgs] for imgs in (noisy, clean, var)), hr_lensed
+    magnify = bool(table is not None and len(table) and model.lensed)
+    clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
+                                      _with_host_light(prep.programs, model, prep.source),
+                                      prep.source, hr_fluxes, magnify)
+    noisy = clean if later_noise is None else \
+        later_noise.result()(jax.random.key(scene.seed), clean)
+    var = model.variances(clean)
+    return (tuple([np.asarray(x) for x in imgs] for imgs in (noisy, clean, var)), hr_lensed,
+            None if mags is None else np.asarray(mags))
+
+
+def _noise_program(prep: Prepared, prog: _Progress):
+    """`_band_noise` of the model's bands as a function (key, noiseless images) → noisy
+    images, loaded or compiled now from the images' shapes: launched in the background, it
+    compiles beside the band render (JAX's Poisson sampler is a fifth of that program)."""
+    with prog.stage("noise (compile)"):
+        model = prep.model
+        like = tuple(jnp.zeros(det.grid.shape, prep.dtype) for det in model.layouts)
+        from . import programcache
+        return programcache.compiled(
+            "band_noise", _band_noise, jax.random.key(0), like,
+            tuple(det.name for det in model.layouts),
+            tuple(det.exptime_s for det in model.layouts), model.accuracy.gaussian_noise_above,
+            folder=prep.programs)
+
+
+def _band_noise(key, clean, names, exptimes_s, gaussian_above_counts):
+    """Photon noise of noiseless band images (with sky, counts/s), as `SceneModel.observe`
+    draws it (`noise.add_photon_noise_bands`)."""
+    from . import noise
+    return noise.add_photon_noise_bands(key, clean, names, exptimes_s, gaussian_above_counts)
 
 
 def _write_band(out: Path, prep: Prepared, k: int, noisy, clean, var, unlensed, unl_model) -> dict:
@@ -679,13 +720,13 @@ def _write_composites(out: Path, prep: Prepared, shown, clean, grids) -> None:
                                 wcs=_wcs_for(g0, scene), title=rgbimage.rgb_title(triple, scene.output.noise))
 
 
-def _write_catalogue(out: Path, prep: Prepared, later_mag):
-    """catalog.ecsv with each clump's magnification (`later_mag`: the launched
-    magnifications, None when unlensed or no clumps) and smear flag; the table (None: no clumps)."""
+def _write_catalogue(out: Path, prep: Prepared, mags):
+    """catalog.ecsv with each clump's magnification (`mags`: the band render's, None when
+    unlensed or no clumps) and smear flag; the table (None: no clumps)."""
     model, table = prep.model, prep.catalog
     if table is not None:
-        if later_mag is not None:   # every source_mode (linearised clumps too)
-            table["magnification"] = np.asarray(later_mag.result())
+        if mags is not None:   # every source_mode (linearised clumps too)
+            table["magnification"] = mags
         else:
             table["magnification"] = np.full(len(table), 1.0 if not model.lensed else np.nan)
         from .preflight import smear_flags
@@ -721,15 +762,16 @@ def _summary(prep: Prepared, summary_bands: dict, table, hr_info) -> dict:
     }
 
 
-def _band_render(model, source, key, hr_fluxes):
-    """The band render (`observe` with a noise key, else `noiseless`) and, given hr_fluxes,
-    the high-resolution lens-plane images (`lens_plane`) of the source with those fluxes,
-    as one program: the work both need (host light per unit flux at the traced pixels,
-    rays) is done once, and one program is compiled and loaded instead of two."""
-    bands = model.noiseless(source) if key is None else model.observe(source, key)
-    if hr_fluxes is None:
-        return bands, None
-    return bands, model.lens_plane(_with_fluxes(source, hr_fluxes))
+def _band_render(model, source, hr_fluxes, magnify: bool):
+    """The noiseless band images (`noiseless`), given hr_fluxes the high-resolution
+    lens-plane images (`lens_plane`) of the source with those fluxes, and with `magnify` the
+    clumps' magnifications, as one program: the work they share (host light per unit flux at
+    the traced pixels, rays, the clumps' stamps) is done once, and one program is compiled
+    and loaded instead of three."""
+    bands = model.noiseless(source)
+    hr = None if hr_fluxes is None else model.lens_plane(_with_fluxes(source, hr_fluxes))
+    mags = model.clump_magnifications(source, beside_band_images=True) if magnify else None
+    return bands, hr, mags
 
 
 def _fluxes(source: Source):

@@ -30,7 +30,8 @@ is called or, from the cache, the one stored after that compilation: the images 
 for bit the same in each case. A stored program is compiled with JAX's persistent cache
 off where JAX's cache held it (`_compile_own`), and a stored one that fails its first call
 is compiled again. `function` gives the same program as a function, loaded or compiled
-once for many calls of one shape.
+once for many calls of one shape; `compiled` loads or compiles it at once (in a background
+thread, before the values it will be called with exist).
 
 Reading ahead (`ReadAhead`): a run that asks for the same programs as the last run with
 the same hint (e.g. the same resolved scene) finds them loaded already. The files that
@@ -225,6 +226,15 @@ def function(name: str, fun, *args, folder=None, baked=None):
     return lambda *a: program(_inputs(a)[0])
 
 
+def compiled(name: str, fun, *args, folder=None, baked=None):
+    """`function`, with its executable loaded or compiled now rather than at its first call
+    (in a background thread, before the values it will be called with exist: `args` need
+    only their structure, array shapes and dtypes, and non-array leaves)."""
+    program, _ = _program(name, fun, args, folder, baked)
+    program.ready()
+    return lambda *a: program(_inputs(a)[0])
+
+
 def _inputs(args):
     """(the program's inputs, the pytree structure, typed-key implementations) of args."""
     leaves, tree = jax.tree_util.tree_flatten(eqx.filter(args, _is_dynamic))
@@ -270,6 +280,12 @@ class _Program:
 
     def __init__(self, stored, compile_):
         self._exe, self._compile, self._unchecked = stored, compile_, stored is not None
+
+    def ready(self):
+        """Load or compile the executable now (a stored one is still checked at its first
+        call)."""
+        if self._exe is None:
+            self._exe = self._compile()
 
     def __call__(self, leaves):
         if self._unchecked:

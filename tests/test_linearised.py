@@ -250,3 +250,18 @@ def test_linearised_flux_follows_the_magnification_averaged_over_the_clump():
     assert abs(mag / mu_ref - 1) < 1e-4, (mag, mu_ref, mu_center)
     img = np.asarray(eqx.filter_jit(lambda m, s: m.band_images(s)[0])(model, src))
     assert abs(img.sum() / mu_ref - 1) < 2e-4, (img.sum(), mu_ref)
+
+
+def test_magnifications_beside_band_images_are_the_standalone_ones(cluster_hybrid):
+    """`clump_magnifications(beside_band_images=True)` (the band render's program computes
+    them from the stamps it makes for the band images, no exact-pixel kernel of their own)
+    gives the standalone program's values to the bit, for linearised and ray-traced clumps,
+    and leaves the band images as they are."""
+    src, bands, kw, hyb = cluster_hybrid
+    assert hyb.clumps.traced is not None and hyb.clumps.linearised is not None
+    alone = np.asarray(eqx.filter_jit(lambda m, s: m.clump_magnifications(s))(hyb, src))
+    images, mags = eqx.filter_jit(lambda m, s: (
+        m.band_images(s), m.clump_magnifications(s, beside_band_images=True)))(hyb, src)
+    np.testing.assert_array_equal(np.asarray(mags), alone)
+    only = eqx.filter_jit(lambda m, s: m.band_images(s))(hyb, src)
+    np.testing.assert_array_equal(np.asarray(images[0]), np.asarray(only[0]))

@@ -153,3 +153,38 @@ def test_no_high_resolution_output_costs_nothing(tmp_path, monkeypatch):
     summary = pipeline.simulate(s, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "hr").exists() and summary["hr"] is None
     assert not any("high-resolution" in stage for stage in summary["timings_split_s"])
+
+
+def test_programs_without_lens_are_launched_before_the_lens_is_traced(tmp_path, monkeypatch):
+    """The unlensed and high-resolution source-plane programs need no lens: `simulate`
+    launches them (`_launch_early`) from `prepare` before it builds the lens and traces it,
+    so that a first run compiles them while the rays are traced."""
+    order = []
+    for name, tag in (("_launch_early", "launch"), ("build_lens", "lens")):
+        fun = getattr(pipeline, name)
+
+        def recorded(*a, _fun=fun, _tag=tag, **k):
+            order.append(_tag)
+            return _fun(*a, **k)
+
+        monkeypatch.setattr(pipeline, name, recorded)
+    pipeline.simulate("single-sersic", tmp_path / "run", progress=False)
+    assert order == ["launch", "lens"]
+
+
+def test_noise_program_draws_what_observe_draws():
+    """The photon noise is drawn by a program of its own (`_noise_program`, compiled beside
+    the band render) from the band render's noiseless images: the same images, to the bit,
+    as `SceneModel.observe` draws in one program."""
+    import equinox as eqx
+    import jax
+
+    from clumpylen_jax import scene as sc
+
+    prep = pipeline.prepare(sc.load_scene("single-sersic"))
+    key = jax.random.key(prep.scene.seed)
+    noisy, clean, _ = eqx.filter_jit(lambda m, s, k: m.observe(s, k))(prep.model, prep.source, key)
+    drawn = pipeline._noise_program(prep, pipeline._Progress(False, 1))(key, clean)
+    assert len(drawn) == len(noisy)
+    for a, b in zip(noisy, drawn):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

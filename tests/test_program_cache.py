@@ -49,6 +49,19 @@ def test_stored_program_is_read_back_and_gives_the_same_bits(monkeypatch, tmp_pa
     assert len(list(tmp_path.glob("*"))) == 1
 
 
+def test_compiled_is_ready_before_its_first_call_from_placeholder_values(monkeypatch, tmp_path):
+    """`compiled` stores (compiles) the program from placeholder arrays of the right shapes,
+    before any call; its calls then trace nothing and give `call`'s bits."""
+    m, x, key = _args()
+    fun = programcache.compiled("tiny", _render, _Model(jnp.asarray(0.0), 2), jnp.zeros(7),
+                                jax.random.key(0), folder=tmp_path)
+    assert len(list(tmp_path.glob("tiny-*.jaxexec"))) == 1
+    with monkeypatch.context() as mp:
+        _refuse_tracing(mp)
+        got = np.asarray(fun(m, x, key))
+    assert got.tobytes() == np.asarray(programcache.call("tiny", _render, m, x, key)).tobytes()
+
+
 def test_key_changes_with_static_fields_shapes_and_versions(monkeypatch, tmp_path):
     programcache.call("tiny", _render, *_args(), folder=tmp_path)
     cubed = programcache.call("tiny", _render, *_args(power=3), folder=tmp_path)

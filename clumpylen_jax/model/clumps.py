@@ -297,11 +297,14 @@ class SourceGridClumps(eqx.Module):
         grad = jax.grad(lensed_total)(zeros)
         return grad * (plane.grid.pixel_arcsec / self.grid.pixel_arcsec) ** 2
 
-    def set_magnifications(self, out, clumps, plane: LensPlane):
-        """out [N] with each ray-traced clump's magnification (light-weighted over its stamp)."""
+    def set_magnifications(self, out, clumps, plane: LensPlane, stamps=None):
+        """out [N] with each ray-traced clump's magnification (light-weighted over its stamp).
+        stamps: the clumps' unit-flux stamps on the grid, when already made."""
         mu = self.magnification_map(plane)
-        for stamps, i0, j0, idx in render.grouped_stamps(clumps, self.grid, self.groups(),
-                                                         order=self.order, core=self.core):
+        if stamps is None:
+            stamps = render.grouped_stamps(clumps, self.grid, self.groups(), order=self.order,
+                                           core=self.core)
+        for stamps, i0, j0, idx in stamps:
             k = jnp.arange(stamps.shape[1])
             rows = j0[:, None, None] + k[None, :, None] + 1      # +1: the grid's border
             cols = i0[:, None, None] + k[None, None, :] + 1
@@ -397,10 +400,15 @@ class LensedClumps(Renderer):
         vals = self.traced.ray_values(source, self.plane, stamps) * self.plane.pixel_area
         return self.plane.window_image(vals)
 
-    def subgrid_light(self, source: Source, subgrids):
+    def _subgrid_stamps(self, source: Source, subgrids):
+        """`_stamps` of the linearised clumps on the sub-grids `subgrids` ({sub-grid: index of
+        its first band}) and of the ray-traced ones."""
         lin = self.linearised
-        images, stamps = self._stamps(source, [] if lin is None else [
+        return self._stamps(source, [] if lin is None else [
             (g, lin.sides[k], lin.index[k]) for g, k in subgrids.items()])
+
+    def subgrid_light(self, source: Source, subgrids):
+        images, stamps = self._subgrid_stamps(source, subgrids)
         lin_images = dict(zip(subgrids, images))
         win = self._window(source, stamps)
         out = {}
@@ -421,8 +429,12 @@ class LensedClumps(Renderer):
             image = self.plane.add_window(image, win)
         return image + images[0] if images else image
 
-    def magnifications(self, source: Source):
-        """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
+    def magnifications(self, source: Source, subgrids=None):
+        """Magnification [N] of each clump within the field (light-weighted over its stamp).
+
+        subgrids: the sub-grids of `subgrid_light` in the same program: the ray-traced
+        clumps' stamps are then made as that makes them (`_subgrid_stamps`, the same
+        computation, which XLA computes once for both), not by a kernel of their own."""
         cl = source.clumps
         out = jnp.zeros(cl.count, cl.re_arcsec.dtype)
         if self.linearised is not None:
@@ -431,7 +443,8 @@ class LensedClumps(Renderer):
             out = out.at[images.clump_index].add(image_magnifications(images, out.dtype))
         if self.traced is None:
             return out
-        return self.traced.set_magnifications(out, cl, self.plane)
+        stamps = None if subgrids is None else self._subgrid_stamps(source, subgrids)[1]
+        return self.traced.set_magnifications(out, cl, self.plane, stamps)
 
     def source_magnification_map(self):
         return self.traced.magnification_map(self.plane)

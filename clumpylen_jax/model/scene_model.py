@@ -138,8 +138,14 @@ class SceneModel(eqx.Module):
         differentiable in the host's geometry."""
         return dataclasses.replace(self, hosts=HeldHosts(self.hosts, units))
 
-    def clump_magnifications(self, source: Source):
-        """Magnification [N] of each clump within the field (light-weighted over its stamp)."""
+    def clump_magnifications(self, source: Source, beside_band_images: bool = False):
+        """Magnification [N] of each clump within the field (light-weighted over its stamp).
+
+        beside_band_images: for a program that computes `band_images` too: the ray-traced
+        clumps' stamps are made as it makes them, so that XLA computes them once for both
+        (one program instead of a second one with its own exact-pixel kernel)."""
+        if beside_band_images and isinstance(self.clumps, LensedClumps):
+            return self.clumps.magnifications(source, first_band_per_subgrid(self.layouts))
         return self.clumps.magnifications(source)
 
     def source_magnification_map(self):
