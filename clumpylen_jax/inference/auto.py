@@ -625,8 +625,8 @@ def merged_clump(beta, flux, re, n: float, q_range=CLUMP_Q_RANGE):
     beta [m, 2] (arcsec), flux [m, B], re [m] (arcsec, round clumps of Sérsic index n). Fluxes
     summed; centre flux-weighted (first band); the second moment of the light (each clump's
     own σ² = (c·R_e)² per axis, c from `profiles.sersic_axis_rms_per_re_np`, plus its offset)
-    gives the ellipse: R_e of the major axis, q = σ_minor/σ_major (clipped into q_range), PA counter-clockwise
-    from +β1 (the `Sersic` conventions)."""
+    gives the ellipse: R_e of the major axis, q = σ_minor/σ_major (clipped into q_range), PA
+    counter-clockwise from +β1 (the `Sersic` conventions)."""
     beta, flux, re = np.asarray(beta, float), np.asarray(flux, float), np.asarray(re, float)
     w = np.clip(flux[:, 0], 1e-300, None)
     w = w / w.sum()

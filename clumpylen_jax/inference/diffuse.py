@@ -33,8 +33,19 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
+from ..errors import require
+
 MIN_SPACING_PIX = 4.0   # pixels: closer nodes would draw a PSF-sized clump
 RIDGE = 1e-6            # λ relative to the mean diagonal of ÃᵀÃ
+
+
+def require_spacing(spacing_arcsec: float, pixel_arcsecs, setting: str) -> None:
+    """A ConfigError naming `setting` unless the nodes are at least MIN_SPACING_PIX pixels
+    apart in every band (pixel_arcsecs: each band's pixel, arcsec)."""
+    coarsest = max(pixel_arcsecs)
+    require(np.isfinite(spacing_arcsec) and spacing_arcsec >= MIN_SPACING_PIX * coarsest,
+            setting, spacing_arcsec, f"at least {MIN_SPACING_PIX:g} pixels of the coarsest band "
+            f"(≥ {MIN_SPACING_PIX * coarsest:.3g} arcsec)")
 
 
 def bspline_design_1d(n: int, spacing_pix: float) -> np.ndarray:

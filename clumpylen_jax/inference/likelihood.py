@@ -109,12 +109,9 @@ def make_data(scene_model, images, variances=None, mask=None, *, kind="gaussian"
     require(kind in KINDS, "likelihood", kind, " or ".join(KINDS))
     if diffuse_spacing_arcsec is not None:
         require(kind == "gaussian", "likelihood", kind, '"gaussian" with a diffuse light')
-        coarsest = max(lay.grid.pixel_arcsec for lay in scene_model.layouts)
-        require(np.isfinite(diffuse_spacing_arcsec)
-                and diffuse_spacing_arcsec >= _diffuse.MIN_SPACING_PIX * coarsest,
-                "diffuse_spacing_arcsec", diffuse_spacing_arcsec,
-                f"≥ {_diffuse.MIN_SPACING_PIX:g} pixels of every band "
-                f"({_diffuse.MIN_SPACING_PIX * coarsest:.3g} arcsec)")
+        _diffuse.require_spacing(diffuse_spacing_arcsec,
+                                 [lay.grid.pixel_arcsec for lay in scene_model.layouts],
+                                 "diffuse_spacing_arcsec")
     names = scene_model.band_names
     imgs = [read_image(x) for x in _per_band(images, names, "images")]
     shapes = [lay.grid.shape for lay in scene_model.layouts]
@@ -216,36 +213,40 @@ def make_log_posterior(scene_model, data: ImageData, param: Parametrization, *,
     return f
 
 
+def _whitened(model_images, data: ImageData) -> list:
+    """Per band, √m (d − μ)/σ flattened."""
+    return [(jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel() for mu, d, m, v in
+            zip(model_images, data.images, data.masks, data.variances)]
+
+
+def _band_residuals(model_images, data: ImageData) -> list:
+    """Per band, the whitened residual the solvers see: `_whitened`, or with a diffuse light
+    `diffuse.profiled_residual` of it (K entries longer)."""
+    parts = _whitened(model_images, data)
+    if data.diffuse is None:
+        return parts
+    return [_diffuse.profiled_residual(b, p) for b, p in zip(data.diffuse, parts)]
+
+
 def whitened_residuals(model_images, data: ImageData):
-    """√m (d − μ)/σ over all bands, flattened: Gaussian ln L = −½ |r|² (fixed variances only).
-    With a diffuse light, each band's part is `diffuse.profiled_residual` (K entries longer)."""
+    """√m (d − μ)/σ over all bands, flattened: Gaussian ln L = −½ |r|² (fixed variances only),
+    profiled over the diffuse light where there is one (`_band_residuals`)."""
     if data.kind != "gaussian":
         raise ConfigError("likelihood", data.kind, '"gaussian" (fixed variances) for residual fits')
-    parts = [(jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel() for mu, d, m, v in
-             zip(model_images, data.images, data.masks, data.variances)]
-    if data.diffuse is not None:
-        parts = [_diffuse.profiled_residual(b, p) for b, p in zip(data.diffuse, parts)]
-    return jnp.concatenate(parts)
+    return jnp.concatenate(_band_residuals(model_images, data))
 
 
 def diffuse_images(model_images, data: ImageData):
     """The best diffuse light per band for predicted images μ (zeros without one)."""
     if data.diffuse is None:
         return tuple(jnp.zeros_like(d) for d in data.images)
-    return tuple(_diffuse.light(b, (jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel(), d.shape)
-                 for b, mu, d, m, v in zip(data.diffuse, model_images, data.images, data.masks,
-                                           data.variances))
+    return tuple(_diffuse.light(b, r, d.shape) for b, r, d in
+                 zip(data.diffuse, _whitened(model_images, data), data.images))
 
 
 def band_chi2(model_images, data: ImageData) -> list:
     """χ² per band of predicted images μ (fixed variances), profiled over the diffuse light."""
-    out = []
-    for k, (mu, d, m, v) in enumerate(zip(model_images, data.images, data.masks, data.variances)):
-        r = (jnp.sqrt(m) * (d - mu) / jnp.sqrt(v)).ravel()
-        if data.diffuse is not None:
-            r = _diffuse.profiled_residual(data.diffuse[k], r)
-        out.append(jnp.sum(r * r))
-    return out
+    return [jnp.sum(r * r) for r in _band_residuals(model_images, data)]
 
 
 def make_residuals(scene_model, data: ImageData, param: Parametrization) -> Callable:

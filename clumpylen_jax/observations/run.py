@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from ..inference.diffuse import require_spacing
 from .answers import clump_rows, host_summary
 from .config import ObservationScene, load_observation_scene
 from .fit import fit_observations
@@ -38,19 +39,6 @@ def read_scene_data(scene: ObservationScene):
                 raise ConfigError(f"observations[{o.name}].filter", o.name,
                                   f"a known filter for masses at z_source ({exc.expected})") from None
     return obs, frame
-
-
-def check_diffuse_spacing(spacing_arcsec, frame):
-    """The diffuse light's nodes at least `diffuse.MIN_SPACING_PIX` pixels apart in every band
-    (closer ones would draw clumps): checked before anything compiles."""
-    from ..inference.diffuse import MIN_SPACING_PIX
-    if spacing_arcsec is None:
-        return
-    coarsest = max(g.pixel_arcsec for g in frame.grids)
-    if spacing_arcsec < MIN_SPACING_PIX * coarsest:
-        raise ConfigError("fit.diffuse_spacing_arcsec", spacing_arcsec,
-                          f"at least {MIN_SPACING_PIX:g} pixels of the coarsest band "
-                          f"(≥ {MIN_SPACING_PIX * coarsest:.3g} arcsec)")
 
 
 def catalogue_starts(path: str, frame) -> dict:
@@ -129,7 +117,9 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         scene = load_observation_scene(str(scene))
     t0 = time.perf_counter()
     obs, frame = read_scene_data(scene)
-    check_diffuse_spacing(scene.fit.diffuse_spacing_arcsec, frame)
+    if scene.fit.diffuse_spacing_arcsec is not None:   # before anything compiles
+        require_spacing(scene.fit.diffuse_spacing_arcsec, [g.pixel_arcsec for g in frame.grids],
+                        "fit.diffuse_spacing_arcsec")
     lens = place_lens(scene, frame)
     read_s = time.perf_counter() - t0
     opts = scene.fit
