@@ -12,9 +12,10 @@ from clumpylen_jax import profiles
 from clumpylen_jax.errors import ConfigError
 from clumpylen_jax.inference import auto
 from clumpylen_jax.inference.auto import AutoOptions, fit_without_truth
+from clumpylen_jax.inference.capacity import psf_sigma_pixels
 from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands
 from clumpylen_jax.inference.seeding import Candidates
-from clumpylen_jax.model import build_model
+from clumpylen_jax.model import Band, build_model
 from clumpylen_jax.pixels import Grid
 from clumpylen_jax.source import Clumps, Sersic, Source
 
@@ -75,6 +76,27 @@ def test_candidates_from_residual_peaks():
     assert np.all(np.abs(cand.flux[:, 0] / np.array([4.0, 2.0, 1.0]) - 1) < 0.35)
     g = grid_model.layouts[0].grid
     assert np.allclose(cand.beta_arcsec[0], [g.x_centers()[12], g.y_centers()[10]])
+
+
+def test_psf_sigma_is_the_cores_not_the_wings():
+    """The seeding's PSF σ (matched filter, size deconvolution) is the core's: FWHM / 2.3548.
+    A Gaussian gives its σ (⊕ the pixel's 1/12); a Gaussian core with 10 % of the flux in a
+    broad halo (σ 8 px, like a real PSF's wings) still gives the core's, where the second
+    moments would give √(0.9 + 0.1 · 64) ≈ 2.7 px."""
+
+    r = np.arange(-30, 31)
+    rr = r[:, None] ** 2 + r[None, :] ** 2
+    core, halo = np.exp(-0.5 * rr / 1.0**2), np.exp(-0.5 * rr / 8.0**2)
+    winged = 0.9 * core / core.sum() + 0.1 * halo / halo.sum()
+    bands = [Band("G", PIX, 1000.0, 0.05, psf=core / core.sum(), psf_pixel_arcsec=PIX),
+             Band("W", PIX, 1000.0, 0.05, psf=winged, psf_pixel_arcsec=PIX)]
+    src = Source(clumps=CLUMPS)
+    model = build_model(src, bands, field_arcsec=FIELD, accuracy=TOY_ACCURACY)
+    sig = psf_sigma_pixels(model)
+    expect = np.sqrt(1.0 + 1 / 12)
+    np.testing.assert_allclose(sig[0], expect, rtol=0.04)   # half-maximum area: ~2 % high
+    # the halo widens the half-maximum contour a little (its 10 % adds to the core's wings)
+    assert sig[0] < sig[1] < 1.15 * sig[0]
 
 
 def test_images_of_one_source_clump_are_merged():
