@@ -363,3 +363,14 @@ def test_sample_stdpsf_at_detector_pixels():
         raw = np.asarray(hdul[0].data[4], dtype=float)  # the central PSF of the 3 x 3 grid
     np.testing.assert_allclose(k, raw[2::4, 2::4] / raw[2::4, 2::4].sum(), rtol=1e-8, atol=1e-15)
     assert 0.9 < raw[2::4, 2::4].sum() / (raw.sum() / 16) < 1.1
+
+
+@pytest.mark.parametrize("size", [15, 61])
+@pytest.mark.parametrize("sigma_pix", [1.0, 1.3, 3.0])
+def test_fwhm_of_a_gaussian_on_small_and_large_arrays(size, sigma_pix):
+    """FWHM = 2.3548 σ within 1 %, whatever the array size (the upsampled grid's step is
+    (n − 1)/(m − 1) pixels, not 1/upsample: a 15-pixel array read 6 % wide before)."""
+    r = np.arange(size) - (size - 1) / 2
+    g = np.exp(-0.5 * (r[:, None] ** 2 + r[None, :] ** 2) / sigma_pix**2)
+    fwhm = fwhm_arcsec(PSF(g / g.sum(), 0.03, False))
+    assert fwhm == pytest.approx(2 * np.sqrt(2 * np.log(2)) * sigma_pix * 0.03, rel=0.01)

@@ -37,7 +37,6 @@ from ..errors import require
 
 MIN_SPACING_PIX = 4.0   # pixels: closer nodes would draw a PSF-sized clump
 RIDGE = 1e-6            # λ relative to the mean diagonal of ÃᵀÃ
-AUTO_SPACING_PER_FWHM = 2.0   # "auto" node spacing / the broadest PSF FWHM (auto_spacing_arcsec)
 
 
 def require_spacing(spacing_arcsec: float, pixel_arcsecs, setting: str) -> None:
@@ -47,17 +46,6 @@ def require_spacing(spacing_arcsec: float, pixel_arcsecs, setting: str) -> None:
     require(np.isfinite(spacing_arcsec) and spacing_arcsec >= MIN_SPACING_PIX * coarsest,
             setting, spacing_arcsec, f"at least {MIN_SPACING_PIX:g} pixels of the coarsest band "
             f"(≥ {MIN_SPACING_PIX * coarsest:.3g} arcsec)")
-
-
-def auto_spacing_arcsec(pixel_arcsecs, psf_fwhm_arcsecs) -> float:
-    """The node spacing of `diffuse_spacing_arcsec = "auto"` (arcsec): AUTO_SPACING_PER_FWHM ×
-    the broadest band's PSF FWHM, at least MIN_SPACING_PIX pixels of the coarsest band.
-    A cubic B-spline h apart has a FWHM of ≈ 1.45 h, ~3 PSF FWHM at h = 2 FWHM, so the diffuse
-    light cannot draw a point source; coarser nodes cannot follow an arc's width: on the mock
-    arc (PSF FWHM 0.09″, arc σ 0.12″, `benchmarks/results/diffuse_arc.md`) 0.18″ found 3/3
-    clumps and no false one, 0.27″ one false clump."""
-    return float(max(MIN_SPACING_PIX * max(pixel_arcsecs),
-                     AUTO_SPACING_PER_FWHM * max(psf_fwhm_arcsecs)))
 
 
 def bspline_design_1d(n: int, spacing_pix: float) -> np.ndarray:

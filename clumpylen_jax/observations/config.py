@@ -23,7 +23,7 @@ import difflib
 import math
 import tomllib
 from pathlib import Path
-from typing import Optional, Union
+from typing import Optional
 
 from ..errors import ConfigError
 from .read import ObservationSpec
@@ -56,9 +56,7 @@ class FitOptions:
         apart (at least 4 pixels of the coarsest band), fitted with the host and clumps and
         profiled out of the likelihood (`inference.diffuse`): for arcs and rings that one
         Sérsic cannot draw. It holds the background level (not fitted separately then).
-        "auto": 2 × the broadest PSF FWHM, at least 4 coarsest pixels
-        (`inference.diffuse.auto_spacing_arcsec`; resolved when the data are read, and
-        reported in summary.json). None (default): no diffuse light.
+        None (default): no diffuse light.
     detection_snr: a band detects a clump when flux/σ_flux ≥ this (else: upper limit).
     """
 
@@ -74,7 +72,7 @@ class FitOptions:
     psf_oversampling: int = 1
     detection_snr: float = 3.0
     max_steps: int = 200
-    diffuse_spacing_arcsec: Optional[Union[float, str]] = None
+    diffuse_spacing_arcsec: Optional[float] = None
 
     def validate(self):
         def need(ok, key, expected):
@@ -100,9 +98,9 @@ class FitOptions:
         need(_num(self.detection_snr) and self.detection_snr > 0, "detection_snr", "a positive S/N")
         need(isinstance(self.max_steps, int) and 1 <= self.max_steps <= 10000, "max_steps",
              "an integer in [1, 10000]")
-        need(self.diffuse_spacing_arcsec in (None, "auto") or (_num(self.diffuse_spacing_arcsec)
-                                                               and self.diffuse_spacing_arcsec > 0),
-             "diffuse_spacing_arcsec", 'a node spacing > 0 arcsec or "auto"')
+        need(self.diffuse_spacing_arcsec is None or (_num(self.diffuse_spacing_arcsec)
+                                                     and self.diffuse_spacing_arcsec > 0),
+             "diffuse_spacing_arcsec", "a node spacing > 0 arcsec")
         return self
 
 

@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..inference.diffuse import auto_spacing_arcsec, require_spacing
-from ..psf import fwhm_arcsec
+from ..inference.diffuse import require_spacing
 from .answers import clump_rows, host_summary
 from .config import ObservationScene, load_observation_scene
 from .fit import fit_observations
@@ -111,20 +110,6 @@ def auto_starts(observations, frame, scene) -> dict:
             "background": np.asarray(auto.state.background_counts_per_s, float)}
 
 
-def resolve_diffuse_spacing(scene, observations, frame):
-    """The scene with `diffuse_spacing_arcsec = "auto"` replaced by its value for these data
-    (`inference.diffuse.auto_spacing_arcsec`: from each band's pixel and PSF FWHM)."""
-    import dataclasses
-
-    if scene.fit.diffuse_spacing_arcsec != "auto":
-        return scene
-    fwhm = [fwhm_arcsec(o.psf) if o.psf is not None else g.pixel_arcsec
-            for o, g in zip(observations, frame.grids)]
-    spacing = auto_spacing_arcsec([g.pixel_arcsec for g in frame.grids], fwhm)
-    return dataclasses.replace(scene, fit=dataclasses.replace(scene.fit,
-                                                              diffuse_spacing_arcsec=spacing))
-
-
 def fit_observation_scene(scene, out_dir=None, *, progress=None):
     """Fit a scene with [[observations]] (a path or an ObservationScene); write the files to
     out_dir (None: nothing written). Returns (fit, table, host, files)."""
@@ -132,7 +117,6 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         scene = load_observation_scene(str(scene))
     t0 = time.perf_counter()
     obs, frame = read_scene_data(scene)
-    scene = resolve_diffuse_spacing(scene, obs, frame)
     if scene.fit.diffuse_spacing_arcsec is not None:   # before anything compiles
         require_spacing(scene.fit.diffuse_spacing_arcsec, [g.pixel_arcsec for g in frame.grids],
                         "fit.diffuse_spacing_arcsec")
