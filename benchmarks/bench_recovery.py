@@ -2,7 +2,8 @@
 
 For each seed: a catalogue of clumps (random positions around the host, magnitudes
 spanning S/N ≈ 3–100, R_e 5–30 mas, q 0.5–1) and a scene (a Sérsic host by magnitude,
-one NIRCam F200W band with a Gaussian PSF file) are written; `clumpylen simulate` makes
+one NIRCam F200W band with a Gaussian PSF file, or `--psf diffraction` the built-in one) are
+written; `clumpylen simulate` makes
 the image; `clumpylen fit SCENE --image F200W=... --out DIR` fits it with no catalogue
 (the scene's clumps are never read by fit). Scenes: "unlensed"; "sis" (the same source
 behind an SIS of θ_E = 1" near its caustic: an arc); "arc" (cosmic-archipelago's z = 6.145
@@ -84,8 +85,7 @@ instrument = "JWST/NIRCam"
 filter = "F200W"
 exptime_s = 2000.0
 sky_counts_per_s = 0.16
-psf = "psf.fits"
-psf_pixel_arcsec = {pix}
+{psf_lines}
 
 [output]
 noise = true
@@ -218,17 +218,24 @@ def _match(true, dist):
     return out
 
 
-def _simulate_and_fit(kind, seed, d: Path):
-    """Scene, image and fit in d; the fit's wall time, load and peak RSS in d/fit_s.json."""
+def _simulate_and_fit(kind, seed, d: Path, psf: str):
+    """Scene, image and fit in d; the fit's wall time, load and peak RSS in d/fit_s.json.
+    psf: "gaussian" (σ 1 pixel, a file) or "diffraction" (the built-in NIRCam PSF, wings
+    and all; the fit uses the same)."""
     cfg = KINDS[kind]
     d.mkdir(parents=True)
-    _psf(d / "psf.fits")
+    if psf == "gaussian":
+        _psf(d / "psf.fits")
+        psf_lines = f'psf = "psf.fits"\npsf_pixel_arcsec = {PIX}'
+    else:
+        psf_lines = 'psf = "diffraction"'
     _catalog(kind, seed, d / "clumps.ecsv")
     (x0, x1), (y0, y1) = cfg["field"]
     (d / "scene.toml").write_text(SCENE.format(kind=kind, seed=seed, center=cfg["center"],
                                                z_source=cfg["z_source"], host_mag=cfg["host_mag"],
                                                host_re=cfg["host_re"], lens=cfg["lens"],
-                                               x0=x0, x1=x1, y0=y0, y1=y1, pix=PIX))
+                                               x0=x0, x1=x1, y0=y0, y1=y1,
+                                               psf_lines=psf_lines))
     assert cli(["simulate", str(d / "scene.toml"), "--out", str(d / "run"), "-q"]) == 0
     t0 = time.perf_counter()
     assert cli(["fit", str(d / "scene.toml"), "--image", f"F200W={d}/run/bands/F200W.fits",
@@ -239,10 +246,10 @@ def _simulate_and_fit(kind, seed, d: Path):
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
 
-def run_one(kind, seed, work: Path):
+def run_one(kind, seed, work: Path, psf: str = "gaussian"):
     d = work / f"{kind}-{seed}"
     if not (d / "fit_s.json").exists():   # a kept seed (--keep) is evaluated again, not refitted
-        _simulate_and_fit(kind, seed, d)
+        _simulate_and_fit(kind, seed, d, psf)
     timing = json.loads((d / "fit_s.json").read_text())
     zp = fits.getheader(d / "run/bands/F200W.fits")["ZP_AB"]
     true = Table.read(d / "run/catalog.ecsv")
@@ -325,16 +332,16 @@ def _fmt(v):
     return "" if v is None else f"{v:.2f}"
 
 
-def _write(results, kinds, n_seeds, wall_s, name="recovery"):
+def _write(results, kinds, n_seeds, wall_s, name="recovery", psf="gaussian"):
     """recovery.{json,md} from the seeds done so far (rewritten after each seed)."""
     summary = {k: summarise([r for r in results if r["kind"] == k]) for k in kinds
                if any(r["kind"] == k for r in results)}
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(
-        {"machine": machine(), "results": results, "summary": summary}, indent=2))
+        {"machine": machine(), "psf": psf, "results": results, "summary": summary}, indent=2))
     done = {k: sum(r["kind"] == k for r in results) for k in kinds}
     lines = ["# bench_recovery: clumpylen simulate -> clumpylen fit, images only", "",
-             f"{N_CLUMPS} clumps per scene; seeds done {done} of {n_seeds} each; "
+             f"{N_CLUMPS} clumps per scene; PSF {psf}; seeds done {done} of {n_seeds} each; "
              f"{machine()['date']}; {wall_s:.0f} s wall in all", "",
              "Per seed: fit wall time, 1-min load average when it ended (the machine "
              "is shared), the process's peak RSS so far, clumps found, false (unmatched) ones, "
@@ -375,6 +382,8 @@ def main():
     ap.add_argument("--scenes", default="sis,unlensed")
     ap.add_argument("--name", default="recovery", help="results/<name>.{json,md}")
     ap.add_argument("--keep", default=None, help="work folder kept (scenes, images, fits)")
+    ap.add_argument("--psf", choices=("gaussian", "diffraction"), default="gaussian",
+                    help="the band's PSF: a σ = 1 pixel Gaussian file, or the built-in NIRCam one")
     args = ap.parse_args()
     kinds = args.scenes.split(",")
     results = []
@@ -383,12 +392,13 @@ def main():
         # seeds interleaved across scenes: a run cut short still has numbers for each
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             for kind in kinds:
-                r = run_one(kind, seed, Path(tmp))
+                r = run_one(kind, seed, Path(tmp), args.psf)
                 results.append(r)
                 print(kind, seed, f"fit {r['fit_s']:.0f} s (load {r['load']:.1f}), found {r['n_fit']}, "
                       f"false {r['false']} (S/N>10: {r['false_snr10']}), recovered "
                       f"{sum(c['recovered'] for c in r['clumps'])}/{len(r['clumps'])}", flush=True)
-                lines = _write(results, kinds, args.seeds, time.perf_counter() - t_all, args.name)
+                lines = _write(results, kinds, args.seeds, time.perf_counter() - t_all, args.name,
+                               args.psf)
     print("\n".join(lines))
 
 
