@@ -15,6 +15,7 @@ mixture conserves flux exactly. Each component's pixel integrals are exact
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
 # K = 8 (scripts/fit_exponential_mog.py): |ΔI(r)| ≤ EXP_ERR_PEAK × I(0) at every radius, and
@@ -37,7 +38,9 @@ def round_mixture(clump_pixels: str):
     """(Sérsic n it stands for, light fractions, σ / R_e) of the `clump_pixels` mixture."""
     if clump_pixels == "round_gaussian":
         from . import profiles   # b(0.5) as every other n = 0.5 path computes it
-        return 0.5, (1.0,), (float(1.0 / np.sqrt(2.0 * float(profiles.sersic_b(0.5)))),)
+        with jax.ensure_compile_time_eval():   # a constant, also when called inside a trace
+            b = float(profiles.sersic_b(0.5))
+        return 0.5, (1.0,), (float(1.0 / np.sqrt(2.0 * b)),)
     if clump_pixels == "exponential_mog":
         a, s = EXPONENTIAL
         return 1.0, tuple(float(v) for v in np.asarray(a) / np.sum(a)), s   # Σ = 1 to rounding

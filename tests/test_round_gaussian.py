@@ -61,6 +61,20 @@ def test_sigma_is_the_half_light_radius():
     assert 1 - np.exp(-1 / (2 * s**2)) == pytest.approx(0.5, abs=1e-15)
 
 
+def test_cell_averaged_lensed_clumps_render_inside_a_trace():
+    """The lensed rays' cell-averaged Gaussian clumps (`render.gaussian_clumps_cell_brightness`)
+    take σ/R_e from b(0.5) when they are traced; that used to call the jitted `sersic_b` and
+    take float() of a tracer (ConcretizationTypeError: every SIS recovery fit with the
+    diffraction PSF stopped there). Jitted and eager give the same bits."""
+    cl = clumps([[0.01, -0.02]], PIX)
+    x1, x2 = jnp.linspace(-0.05, 0.05, 7), jnp.linspace(-0.04, 0.04, 7)
+    cov = (jnp.full(7, 1e-6), jnp.zeros(7), jnp.full(7, 1e-6))
+    eager = render.gaussian_clumps_cell_brightness(cl, x1, x2, cov)
+    jitted = jax.jit(render.gaussian_clumps_cell_brightness)(cl, x1, x2, cov)
+    assert np.all(np.isfinite(np.asarray(jitted)))
+    np.testing.assert_array_equal(np.asarray(jitted), np.asarray(eager))
+
+
 def test_separable_matches_the_fan_integral_everywhere():
     """Per pixel, against the Sérsic renderer's exact fan integral at n = 0.5 over a whole
     31 × 27 grid: the fan's angular quadrature is what limits the agreement (≤ 5.2e-8 of
