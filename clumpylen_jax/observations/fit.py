@@ -204,12 +204,19 @@ def free_parameters(source: Source, frame, options, *, clumps=True) -> dict:
     return free
 
 
-def _chi2(model, data, state):
-    """(χ² per band, μ per band with the fitted diffuse light, numpy)."""
+@eqx.filter_jit
+def _chi2_and_images(model, data, state):
+    """(χ² per band, μ per band with the fitted diffuse light): one compiled program, not the
+    whole model op by op outside a trace (~100 one-op compiles of the host's exact pixels)."""
     mu = predicted_images(model, state)
     light = diffuse_images(mu, data)
-    return ([float(c) for c in band_chi2(mu, data)],
-            [np.asarray(p) + np.asarray(g) for p, g in zip(mu, light)])
+    return band_chi2(mu, data), tuple(p + g for p, g in zip(mu, light))
+
+
+def _chi2(model, data, state):
+    """(χ² per band, μ per band with the fitted diffuse light, numpy)."""
+    chi2, images = _chi2_and_images(model, data, state)
+    return [float(c) for c in chi2], [np.asarray(m) for m in images]
 
 
 def _data(model, observations, mu=None, diffuse_spacing_arcsec=None):
@@ -225,13 +232,21 @@ class _StageResult(eqx.Module):
     uncertainty: object
 
 
-def _uncertainty_from_jacobian(param, u, jac):
-    """Fisher covariance in physical x from the whitened-residual Jacobian in u (dx/du is
-    diagonal: every transform is elementwise)."""
-    from ..inference.uncertainty import Uncertainty, safe_inverse
+@eqx.filter_jit
+def _covariance_from_jacobian(param, u, jac):
+    """(x, Fisher covariance in physical x) from the whitened-residual Jacobian in u (dx/du is
+    diagonal: every transform is elementwise); compiled as one program (op by op, a dozen
+    one-op compiles)."""
+    from ..inference.uncertainty import safe_inverse
     x, dxdu = jax.jvp(param.physical_vector, (u,), (jnp.ones_like(u),))
     jx = jac / jnp.where(dxdu != 0, dxdu, jnp.finfo(u.dtype).tiny)
-    return Uncertainty(param.labels, x, safe_inverse(jx.T @ jx))
+    return x, safe_inverse(jx.T @ jx)
+
+
+def _uncertainty_from_jacobian(param, u, jac):
+    """`Uncertainty` of the physical free parameters at u (`_covariance_from_jacobian`)."""
+    from ..inference.uncertainty import Uncertainty
+    return Uncertainty(param.labels, *_covariance_from_jacobian(param, u, jac))
 
 
 def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
