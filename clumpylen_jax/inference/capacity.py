@@ -5,8 +5,9 @@ R_e of the prior (so unlensed stamps hold any clump the fit can reach: a clump g
 beyond its build-time R_e would otherwise be cut by a square stamp). A fit varies a
 Parametrization over every slot; the light of slot i is multiplied by active[i]
 (0 or 1, a traced array), so adding, removing or moving a clump changes arrays only,
-never shapes or static fields: `solve_batch`, `solve_local_batch`, `predict` and the
-Fisher matrix compile once per (model, data layout, capacity, batch size) and are reused
+never shapes or static fields: `solve_batch`, `solve_local_batch`, the rendering of a
+state (`likelihood.chi2_and_images`) and the Fisher matrix compile once per (model, data
+layout, capacity, batch size) and are reused
 at every counting step; `solve_local_batch` takes any number of rows moved up to the
 capacity (padded, `_local_normal`), so the counting steps and the final refit of every
 kept clump share one program. An inactive slot has zero Jacobian columns, and gets a
@@ -212,12 +213,6 @@ def fisher_of_rows(model, data, param, u, entries, slots, active):
         return jnp.concatenate([img.ravel() for img in predicted_images(model, state)])
 
     return fisher_for_data(model, model_vector, x[entries], data)
-
-
-@eqx.filter_jit
-def predict(model, param, u, active):
-    """Model images (with sky and fitted background) at u with the mask applied."""
-    return predicted_images(model, masked_clumps(param.state(u), active))
 
 
 def psf_sigma_pixels(model) -> np.ndarray:
