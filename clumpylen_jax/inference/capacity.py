@@ -126,7 +126,8 @@ def _normal_by_blocks(r, T_host, T_chunks, n_chunks):
 
 
 def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int, chunk: int):
-    """v ↦ (residuals, JᵀJ, Jᵀr) of the fit over the entries idx of u (the rest held).
+    """(v ↦ (residuals, JᵀJ, Jᵀr), v ↦ residuals) of the fit over the entries idx of u (the
+    rest held).
 
     Layout (`auto._solve_layout`): idx = n_host host and background entries, then per row
     of slots (int [C·chunk]) its clump entries, as many per row; the entry u.size (a
@@ -163,6 +164,14 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
                 mu, st.background_counts_per_s, light)), data)
         return f
 
+    def residual(v):
+        """The residuals alone (what decides a trial), the light summed as `normal` sums it."""
+        def add_rows(c, light):
+            rows = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
+            l_c = model.band_images(_rows_source(model, state_of(v), rows, rows < cap))
+            return tuple(a + b for a, b in zip(light, l_c))
+        return host_residuals(jax.lax.fori_loop(0, n_chunks, add_rows, tuple(fixed)))(v)
+
     def normal(v):
         def add_chunk(c, carry):
             light, T_chunks = carry
@@ -174,15 +183,16 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
         r, T_host = _tangents(host_residuals(light), v, 0, n_host)
         H, g = _normal_by_blocks(r, T_host, T_chunks, n_chunks)
         return r, H, g
-    return normal
+    return normal, residual
 
 
 def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host, chunk):
     """LM over the entries idx of u only (`_local_normal`)."""
-    normal = _local_normal(model, data, param, u, idx, slots, active,
-                           held_light(model, param.state(u), slots, active), n_host, chunk)
+    normal, residual = _local_normal(model, data, param, u, idx, slots, active,
+                                     held_light(model, param.state(u), slots, active), n_host,
+                                     chunk)
     v0 = u.at[idx].get(mode="fill", fill_value=0.0)
-    r = levenberg_marquardt(lambda v: normal(v)[0], v0, max_steps, rtol, normal=normal)
+    r = levenberg_marquardt(residual, v0, max_steps, rtol, normal=normal)
     return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps
 
 
