@@ -209,9 +209,9 @@ def _padded(state, n_rows: int):
     """The state with its clumps padded to n_rows by copies of the first row with zero flux
     (dark: the same light)."""
     cl = state.source.clumps
-    extra = n_rows - cl.count
-    pad = lambda a: jnp.asarray(np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[:1], extra, 0)]))  # noqa: E731
-    rows = jax.tree_util.tree_map(lambda a: pad(a) if eqx.is_array(a) else a, cl)
+    take = np.r_[np.arange(cl.count), np.zeros(n_rows - cl.count, int)]
+    rows = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[take]) if eqx.is_array(a)
+                                  else a, cl)
     flux = np.asarray(rows.flux).copy()
     flux[cl.count:] = 0.0
     return eqx.tree_at(lambda s: s.source.clumps, state,
@@ -220,7 +220,7 @@ def _padded(state, n_rows: int):
 
 def _chi2(model, data, state, render=None):
     """(χ² per band, μ per band with the fitted diffuse light, numpy) from one compiled
-    program (`likelihood.chi2_and_images`; op by op, ~100 one-op compiles). render: (model,
+    program (`likelihood.chi2_and_images`; op by op, ~260 one-op compiles). render: (model,
     clump capacity) of the automatic stage, or None: the state is then drawn by the
     counting's model padded to its capacity with dark clumps, a program compiled already
     (the same factory and bands: the same light, to rounding)."""
