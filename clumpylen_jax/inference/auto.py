@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
 
 import equinox as eqx
@@ -63,7 +62,6 @@ CRITERIA = ("bic", "lr")
 DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
 RE_MAX_PIXELS = 2.0        # default upper bound of clump R_e: 2 finest detector pixels
 LOCAL_SLOTS = 3            # clumps free in a counting step: the new one and its 2 nearest
-PARALLEL_CALLS = 2         # the starts of a local fit in this many calls at once (2 cores)
 MERGE_SEPARATION = 3.0     # pairs tried as one clump: centres within 3 (R_e,i + R_e,j)
 SHAPE_START_Q = 0.6        # axis ratio a shape move starts from
 RE_MIN_FRACTION = 1e-3     # lower bound of clump R_e, as a fraction of the upper one
@@ -313,7 +311,6 @@ class _Ctx:
     slot_index: np.ndarray     # [capacity, k_clump]: entries of u of each clump slot
     shape_index: Optional[np.ndarray] = None   # [capacity, 2]: q, PA entries (shape moves)
     shaped: Optional[np.ndarray] = None        # bool [capacity]: q, PA fitted for this slot
-    compiled: bool = False     # solve_local_batch called once (compiled): calls may run at once
 
     @property
     def cap(self):
@@ -467,37 +464,17 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None, held_sets=No
     for k, held in enumerate(held_sets or []):
         idxs[k][np.isin(idxs[k], np.asarray(held, int))] = ctx.param.size
     m = us.shape[0]
-
-    def solve(starts):
-        """The starts `starts` (at most s) by one call of the compiled batch of s, padded
-        with copies that take no step: numpy (u, ln L, converged, steps) of those starts."""
-        pad = starts[np.arange(s) % starts.size]
-        out = capacity.solve_local_batch(
-            ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-            jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), ctx.opts.rtol,
-            _step_limits(ctx, starts.size), int(ctx.host_index.size), LOCAL_SLOTS)
-        return [np.asarray(a)[:starts.size] for a in out]
-
+    pad = np.arange(s) % m
     t0 = time.perf_counter()
-    parts = _parallel_parts(ctx, m)
-    with ThreadPoolExecutor(len(parts)) as pool:
-        done = list(pool.map(solve, parts))
-    ctx.compiled = True
-    out, lnl, ok, steps = (np.concatenate(a) for a in zip(*done))
-    lnl = np.where(np.isfinite(lnl), lnl, -np.inf)
-    LOG.info("local fit of %d start(s) in %d call(s), %d clump(s): %.2f s, ln L %s, steps %s",
-             m, len(parts), int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl, 1),
-             steps)
-    return out, lnl, ok, steps
-
-
-def _parallel_parts(ctx: _Ctx, m: int) -> list:
-    """The m starts of a local fit split into PARALLEL_CALLS calls of the same compiled batch,
-    run at once from as many threads (XLA runs a call on about one core, and releases the
-    GIL while it runs; each start is solved alone, so a start's answer is the same in any
-    call). One call until the batch is compiled (two threads would compile it twice)."""
-    n = min(PARALLEL_CALLS, m) if ctx.compiled else 1
-    return [a for a in np.array_split(np.arange(m), n) if a.size]
+    out, lnl, ok, steps = capacity.solve_local_batch(
+        ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
+        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), ctx.opts.rtol, _step_limits(ctx, m),
+        int(ctx.host_index.size), LOCAL_SLOTS)
+    lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
+    LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
+             int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
+             np.asarray(steps)[:m])
+    return np.asarray(out)[:m], lnl[:m], np.asarray(ok)[:m], np.asarray(steps)[:m]
 
 
 def _local_slots(ctx: _Ctx, u, active, new_slot: int, beta):
