@@ -299,9 +299,10 @@ def _local_normal_matches(model, data, param, u, active, slots, idx, n_host, chu
     held = capacity.held_light(model, param.state(u), slots, active)
     v = u.at[idx].get(mode="fill", fill_value=0.0)
     for chunk in chunks:
-        normal = capacity._local_normal(model, data, param, u, idx, slots, active, held, n_host,
-                                        chunk)
+        normal, residual = capacity._local_normal(model, data, param, u, idx, slots, active,
+                                                  held, n_host, chunk)
         r, H, g = (np.asarray(a) for a in jax.jit(normal)(v))
+        assert np.abs(np.asarray(jax.jit(residual)(v)) - r).max() <= 1e-12 * np.abs(r).max()
         n = real.size
         assert np.abs(r - r0).max() <= 1e-12 * np.abs(r0).max()
         assert np.abs(H[:n, :n] - J.T @ J).max() <= 1e-12 * np.abs(J.T @ J).max()

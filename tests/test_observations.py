@@ -640,3 +640,43 @@ def test_flags_share_the_mock_fits_bits_and_mark_unresolved_sizes():
                            FLAGS["position_at_box_edge"], FLAGS["size_unresolved"]]
     held = _flags(fit, frame, pix, opts, np.full(4, np.nan) > np.asarray(re))
     assert list(held) == [0, FLAGS["re_at_bound"], FLAGS["position_at_box_edge"], 0]
+
+
+def test_final_images_drawn_by_the_counting_model_are_the_fits_own():
+    """`observations.fit._chi2` with the automatic stage's model and clump capacity
+    (`render`: the state padded with dark clumps, a program the counting compiled) gives
+    the χ² and images of the joint fit's own model, to rounding."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from clumpylen_jax.inference.likelihood import make_data
+    from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands
+    from clumpylen_jax.inference.params import make_state
+    from clumpylen_jax.model import build_model
+    from clumpylen_jax.observations.fit import _chi2
+    from clumpylen_jax.source import Clumps, Sersic, Source
+
+    bands = toy_bands(2, psf_sigma_pix=1.0)
+    acc = dataclasses.replace(TOY_ACCURACY, clump_pixels="exponential_mog")
+    field = ((-0.6, 0.6), (-0.6, 0.6))
+    host = Sersic(jnp.array([40.0, 30.0]), jnp.asarray(0.25), jnp.asarray(1.5), jnp.asarray(0.7),
+                  jnp.asarray(0.4), jnp.array([0.02, -0.01]))
+
+    def source(n, shift=0.0):
+        c = np.array([[-0.2, 0.1], [0.2, -0.15], [0.05, 0.25], [0.3, 0.3], [-0.3, -0.3]])[:n]
+        return Source(bulge=host, clumps=Clumps(
+            jnp.asarray(c + shift), jnp.asarray(np.arange(1.0, 2 * n + 1).reshape(n, 2)),
+            jnp.full(n, 0.03 + shift), jnp.ones(n), jnp.ones(n), jnp.zeros(n)))
+    own = build_model(source(3), bands, field_arcsec=field, accuracy=acc)
+    counting = build_model(source(5, 0.01), bands, field_arcsec=field, accuracy=acc)
+    state = make_state(source(3), 2, background_counts_per_s=np.array([0.1, -0.2]))
+    shape = own.layouts[0].grid.shape
+    rng = np.random.default_rng(3)
+    data = make_data(own, [rng.normal(1.0, 0.1, shape) for _ in bands],
+                     [np.full(shape, 0.01)] * 2, kind="gaussian")
+    chi2, images = _chi2(own, data, state)
+    chi2_r, images_r = _chi2(own, data, state, render=(counting, 5))
+    assert np.allclose(chi2_r, chi2, rtol=1e-12, atol=0)
+    for a, b in zip(images_r, images):
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()

@@ -53,8 +53,8 @@ from ..errors import require
 from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
 from .catalog import fit_table
-from .likelihood import band_chi2, diffuse_images, make_data
-from .params import Free, FitState, Parametrization, make_state, masked_clumps, parametrize
+from .likelihood import chi2_and_images, make_data
+from .params import Free, FitState, Parametrization, make_state, parametrize
 from .transforms import Transform
 from .uncertainty import Uncertainty, safe_inverse
 
@@ -488,26 +488,35 @@ def _local_slots(ctx: _Ctx, u, active, new_slot: int, beta):
     return (near + rest)[:n_local]
 
 
-def _predicted(ctx: _Ctx, u, active):
-    return capacity.predict(ctx.model, ctx.param, jnp.asarray(u), jnp.asarray(active, float))
+def masked_state(param: Parametrization, u, active) -> FitState:
+    """The state at u with clump k's fluxes times active[k], the product made in numpy
+    (`params.masked_clumps` outside a trace compiles its multiply op by op)."""
+    state = param.state(jnp.asarray(u))
+    flux = np.asarray(state.source.clumps.flux) * np.asarray(active, float)[:, None]
+    return eqx.tree_at(lambda s: s.source.clumps.flux, state, jnp.asarray(flux))
+
+
+def _rendered(ctx: _Ctx, u, active):
+    """(χ² per band, μ plus the best diffuse light per band) at u with the mask `active`, no
+    refit (`likelihood.chi2_and_images`: the program the observation fit's images reuse)."""
+    chi2, images = chi2_and_images(ctx.model, ctx.data, masked_state(ctx.param, u, active))
+    return [float(c) for c in chi2], [np.asarray(m) for m in images]
 
 
 def _residuals(ctx: _Ctx, u, active):
     """d − μ per band, less the best diffuse light where there is one (what is left to seed)."""
-    mu = _predicted(ctx, u, active)
-    r = [np.asarray(d) - np.asarray(m) for d, m in zip(ctx.data.images, mu)]
-    if ctx.data.diffuse is not None:
-        r = [a - np.asarray(g) for a, g in zip(r, diffuse_images(mu, ctx.data))]
-    return r
+    return [np.asarray(d) - m for d, m in zip(ctx.data.images, _rendered(ctx, u, active)[1])]
 
 
 def _log_likelihood(ctx: _Ctx, u, active):
-    """ln L at u with the mask `active`, no refit: from the `predict` program the counting
-    compiles anyway (one program of the whole model fewer than a ln L program)."""
+    """ln L at u with the mask `active`, no refit: from the program the counting compiles
+    anyway for its residuals (one program of the whole model fewer than a ln L program)."""
+    chi2, images = _rendered(ctx, u, active)
     if ctx.data.diffuse is not None:
-        return -0.5 * sum(float(c) for c in band_chi2(_predicted(ctx, u, active), ctx.data))
+        return -0.5 * sum(chi2)
+    resid = [np.asarray(d) - m for d, m in zip(ctx.data.images, images)]
     return -0.5 * sum(float(np.sum(np.asarray(m) * r * r / np.asarray(v))) for r, m, v in
-                      zip(_residuals(ctx, u, active), ctx.data.masks, ctx.data.variances))
+                      zip(resid, ctx.data.masks, ctx.data.variances))
 
 
 def _chi2_dof(ctx: _Ctx, lnl, n_active):
@@ -946,7 +955,10 @@ def _apply_profile(table, prof, idx, band_names):
 
 
 def _take(tree, idx):
-    return jax.tree_util.tree_map(lambda a: a[idx] if eqx.is_array(a) else a, tree)
+    """The rows idx of every array of tree, taken in numpy (no op-by-op gather per field)."""
+    rows = np.asarray(idx, int)
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[rows]) if eqx.is_array(a)
+                                  else a, tree)
 
 
 def _compact(state: FitState, idx) -> FitState:
@@ -1035,7 +1047,7 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
             u = _shaped_start(ctx, u, active, shape_trials)
     us, lnls, oks, b = _final(ctx, u, active, steps)
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
-    state = masked_clumps(ctx.param.state(jnp.asarray(u)), active)
+    state = masked_state(ctx.param, u, active)
     idx = np.nonzero(active > 0)[0]
     if not opts.errors:
         return AutoFit(_compact(state, idx), ctx.param, None, None, steps, ctx.model, u, active,

@@ -5,8 +5,9 @@ R_e of the prior (so unlensed stamps hold any clump the fit can reach: a clump g
 beyond its build-time R_e would otherwise be cut by a square stamp). A fit varies a
 Parametrization over every slot; the light of slot i is multiplied by active[i]
 (0 or 1, a traced array), so adding, removing or moving a clump changes arrays only,
-never shapes or static fields: `solve_batch`, `solve_local_batch`, `predict` and the
-Fisher matrix compile once per (model, data layout, capacity, batch size) and are reused
+never shapes or static fields: `solve_batch`, `solve_local_batch`, the rendering of a
+state (`likelihood.chi2_and_images`) and the Fisher matrix compile once per (model, data
+layout, capacity, batch size) and are reused
 at every counting step; `solve_local_batch` takes any number of rows moved up to the
 capacity (padded, `_local_normal`), so the counting steps and the final refit of every
 kept clump share one program. An inactive slot has zero Jacobian columns, and gets a
@@ -128,7 +129,8 @@ def _normal_by_blocks(r, T_host, T_chunks, n_chunks):
 
 
 def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int, chunk: int):
-    """v ↦ (residuals, JᵀJ, Jᵀr) of the fit over the entries idx of u (the rest held).
+    """(v ↦ (residuals, JᵀJ, Jᵀr), v ↦ residuals) of the fit over the entries idx of u (the
+    rest held).
 
     Layout (`auto._solve_layout`): idx = n_host host and background entries, then per row
     of slots (int [C·chunk]) its clump entries, as many per row; the entry u.size (a
@@ -165,6 +167,14 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
                 mu, st.background_counts_per_s, light)), data)
         return f
 
+    def residual(v):
+        """The residuals alone (what decides a trial), the light summed as `normal` sums it."""
+        def add_rows(c, light):
+            rows = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
+            l_c = model.band_images(_rows_source(model, state_of(v), rows, rows < cap))
+            return tuple(a + b for a, b in zip(light, l_c))
+        return host_residuals(jax.lax.fori_loop(0, n_chunks, add_rows, tuple(fixed)))(v)
+
     def normal(v):
         def add_chunk(c, carry):
             light, T_chunks = carry
@@ -176,15 +186,16 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
         r, T_host = _tangents(host_residuals(light), v, 0, n_host)
         H, g = _normal_by_blocks(r, T_host, T_chunks, n_chunks)
         return r, H, g
-    return normal
+    return normal, residual
 
 
 def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host, chunk):
     """LM over the entries idx of u only (`_local_normal`)."""
-    normal = _local_normal(model, data, param, u, idx, slots, active,
-                           held_light(model, param.state(u), slots, active), n_host, chunk)
+    normal, residual = _local_normal(model, data, param, u, idx, slots, active,
+                                     held_light(model, param.state(u), slots, active), n_host,
+                                     chunk)
     v0 = u.at[idx].get(mode="fill", fill_value=0.0)
-    r = levenberg_marquardt(lambda v: normal(v)[0], v0, max_steps, rtol, normal=normal)
+    r = levenberg_marquardt(residual, v0, max_steps, rtol, normal=normal)
     return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps
 
 
@@ -215,12 +226,6 @@ def fisher_of_rows(model, data, param, u, entries, slots, active):
         return jnp.concatenate([img.ravel() for img in predicted_images(model, state)])
 
     return fisher_for_data(model, model_vector, x[entries], data)
-
-
-@eqx.filter_jit
-def predict(model, param, u, active):
-    """Model images (with sky and fitted background) at u with the mask applied."""
-    return predicted_images(model, masked_clumps(param.state(u), active))
 
 
 def psf_sigma_pixels(model) -> np.ndarray:

@@ -249,6 +249,17 @@ def band_chi2(model_images, data: ImageData) -> list:
     return [jnp.sum(r * r) for r in _band_residuals(model_images, data)]
 
 
+@eqx.filter_jit
+def chi2_and_images(scene_model, data: ImageData, state: FitState):
+    """(χ² per band, μ per band plus its best diffuse light) of a FitState (fixed variances):
+    the one program that renders a state outside a fit. The counting's residuals and ln L
+    (`auto`) and the observation fit's final images call it with the same model, data
+    layout and clump capacity, so it compiles once for both."""
+    mu = predicted_images(scene_model, state)
+    light = diffuse_images(mu, data)
+    return tuple(band_chi2(mu, data)), tuple(m + g for m, g in zip(mu, light))
+
+
 def make_residuals(scene_model, data: ImageData, param: Parametrization) -> Callable:
     """u ↦ whitened residual vector (for Levenberg–Marquardt)."""
     def f(u):

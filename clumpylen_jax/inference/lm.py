@@ -4,11 +4,12 @@ observation fits (`observations/fit.py`) and of the clump counting (`capacity.py
 Why not optimistix's LevenbergMarquardt (used elsewhere in inference/): its compiled
 program holds the scene model several times (residual, linearisation, trial step), and
 for a three-band model with exact pixel integrals XLA spends minutes compiling it; the
-Fisher matrix then needs one more compile. Here each step evaluates residuals and
-Jacobian together (`jax.jacfwd(..., has_aux=True)`: one trace of the model) at a trial
-point, accepts it if χ² dropped (λ ← λ/3) or keeps the previous point (λ ← 4λ), and
-proposes the next trial from (JᵀJ + λ diag JᵀJ) δ = −Jᵀr. The Jacobian at the optimum is
-returned, so errors need no further compile. benchmarks/bench_optimizers.py measures both.
+Fisher matrix then needs one more compile. Here each step evaluates the residuals at a
+trial point, accepts it if χ² dropped (λ ← λ/3) or keeps the previous point (λ ← 4λ),
+makes the Jacobian only at an accepted point (`jax.jacfwd(..., has_aux=True)`: one trace
+of the model; a rejected trial costs one model evaluation), and proposes the next trial
+from (JᵀJ + λ diag JᵀJ) δ = −Jᵀr. The Jacobian at the optimum is returned, so errors need
+no further compile. benchmarks/bench_optimizers.py measures both.
 
 Converged (`success`) means one of two things, never "ran out of steps" nor "damping
 maxed out while a Gauss–Newton step would still gain": an accepted step close to
@@ -127,7 +128,10 @@ def held_residuals(scene_model, data, param, active=None):
 
 def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
                         r_and_j=None, normal=None) -> LMResult:
-    """Minimise |resid(u)|² over u from u0 (module doc). Traceable: vmap it for many starts.
+    """Minimise |resid(u)|² over u from u0 (module doc). Traceable (under vmap its branch on
+    acceptance runs both sides: `capacity.solve_batch` maps starts one after the other).
+    resid decides each trial (it should cost one model evaluation); the linearisation is
+    made at accepted trials only.
     max_steps: an int or a traced integer (0: no step, u0 returned with χ² = inf).
     r_and_j: u ↦ (resid(u), Jacobian) when given (`blockwise`), else one jacfwd of resid.
     normal: u ↦ (resid(u), JᵀJ, Jᵀr) instead of r_and_j, for a caller that builds the normal
@@ -147,16 +151,16 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
         return (s["step"] < max_steps) & ~s["done"]
 
     def body(s):
-        r_t, H_t, g_t, J_t = lin(s["trial"])
-        c_t = jnp.sum(r_t**2)
+        # the residuals alone decide the trial; the Jacobian is made only where it is
+        # accepted (a rejected trial costs one model evaluation, not its derivatives)
+        c_t = jnp.sum(resid(s["trial"]) ** 2)
         accept = jnp.isfinite(c_t) & (c_t <= s["chi2"])
         # converged: a step close to Gauss–Newton (not one shrunk by a large λ after
         # rejections, which gains little anywhere) that gained almost nothing
         small = accept & (s["chi2"] - c_t <= rtol * c_t) & (s["lam"] <= 1.0)
-        keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
-        u, H, g, chi2 = (keep(s["trial"], s["u"]), keep(H_t, s["H"]), keep(g_t, s["g"]),
-                         keep(c_t, s["chi2"]))
-        J = None if J_t is None else keep(J_t, s["J"])
+        u, chi2 = jnp.where(accept, s["trial"], s["u"]), jnp.where(accept, c_t, s["chi2"])
+        H, g, J = jax.lax.cond(accept, lambda: lin(s["trial"])[1:],
+                               lambda: (s["H"], s["g"], s["J"]))
         lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
         trial, _ = _propose(u, H, g, lam)
         stuck = lam > LAMBDA_MAX

@@ -13,7 +13,8 @@
    `clump_starts` (φ positions, optional R_e) with fluxes from the residual of the
    host-only fit in a 5 × 5-pixel box. When `clump_starts` carries a fitted "host"
    (and "flux", "background": the auto fit's optimum) the joint fit starts there and
-   the host-only stage is skipped.
+   the host-only stage is skipped; its "render" (model, clump capacity) then draws the
+   final images with a program compiled already (`_chi2`).
 3. stage "host": host + background by Levenberg–Marquardt (lm.py); stage "joint":
    host, clumps (flux per band, centre, R_e [, q, PA]) and background together. With
    a noise model, σ² = rms² + μ/t is refreshed from the model and the joint fit
@@ -38,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
-from ..inference.likelihood import band_chi2, diffuse_images, make_data, predicted_images
+from ..inference.likelihood import chi2_and_images, make_data
 from ..inference.optimize import fit_map
 from ..inference.params import Free, make_state, parametrize
 from ..inference.transforms import IDENTITY, LOG, Transform
@@ -204,12 +205,30 @@ def free_parameters(source: Source, frame, options, *, clumps=True) -> dict:
     return free
 
 
-def _chi2(model, data, state):
-    """(χ² per band, μ per band with the fitted diffuse light, numpy)."""
-    mu = predicted_images(model, state)
-    light = diffuse_images(mu, data)
-    return ([float(c) for c in band_chi2(mu, data)],
-            [np.asarray(p) + np.asarray(g) for p, g in zip(mu, light)])
+def _padded(state, n_rows: int):
+    """The state with its clumps padded to n_rows by copies of the first row with zero flux
+    (dark: the same light)."""
+    cl = state.source.clumps
+    take = np.r_[np.arange(cl.count), np.zeros(n_rows - cl.count, int)]
+    rows = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[take]) if eqx.is_array(a)
+                                  else a, cl)
+    flux = np.asarray(rows.flux).copy()
+    flux[cl.count:] = 0.0
+    return eqx.tree_at(lambda s: s.source.clumps, state,
+                       eqx.tree_at(lambda c: c.flux, rows, jnp.asarray(flux)))
+
+
+def _chi2(model, data, state, render=None):
+    """(χ² per band, μ per band with the fitted diffuse light, numpy) from one compiled
+    program (`likelihood.chi2_and_images`; op by op, ~260 one-op compiles). render: (model,
+    clump capacity) of the automatic stage, or None: the state is then drawn by the
+    counting's model padded to its capacity with dark clumps, a program compiled already
+    (the same factory and bands: the same light, to rounding)."""
+    if render is not None and state.source.clumps is not None and \
+            0 < state.source.clumps.count <= render[1]:
+        model, state = render[0], _padded(state, render[1])
+    chi2, images = chi2_and_images(model, data, state)
+    return [float(c) for c in chi2], [np.asarray(m) for m in images]
 
 
 def _data(model, observations, mu=None, diffuse_spacing_arcsec=None):
@@ -225,22 +244,30 @@ class _StageResult(eqx.Module):
     uncertainty: object
 
 
-def _uncertainty_from_jacobian(param, u, jac):
-    """Fisher covariance in physical x from the whitened-residual Jacobian in u (dx/du is
-    diagonal: every transform is elementwise)."""
-    from ..inference.uncertainty import Uncertainty, safe_inverse
+@eqx.filter_jit
+def _covariance_from_jacobian(param, u, jac):
+    """(x, Fisher covariance in physical x) from the whitened-residual Jacobian in u (dx/du is
+    diagonal: every transform is elementwise); compiled as one program (op by op, a dozen
+    one-op compiles)."""
+    from ..inference.uncertainty import safe_inverse
     x, dxdu = jax.jvp(param.physical_vector, (u,), (jnp.ones_like(u),))
     jx = jac / jnp.where(dxdu != 0, dxdu, jnp.finfo(u.dtype).tiny)
-    return Uncertainty(param.labels, x, safe_inverse(jx.T @ jx))
+    return x, safe_inverse(jx.T @ jx)
+
+
+def _uncertainty_from_jacobian(param, u, jac):
+    """`Uncertainty` of the physical free parameters at u (`_covariance_from_jacobian`)."""
+    from ..inference.uncertainty import Uncertainty
+    return Uncertainty(param.labels, *_covariance_from_jacobian(param, u, jac))
 
 
 def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
-              max_steps=200, solver="lm", diffuse_spacing_arcsec=None):
+              max_steps=200, solver="lm", diffuse_spacing_arcsec=None, render=None):
     """One fit; appends a record to `steps`; returns (result, param, data, μ).
 
     solver: "lm" (lm.py: one Jacobian per step, errors from the last one) or
     "optimistix-lm" / "optimistix-bfgs" (then a Fisher matrix): compared in
-    benchmarks/bench_optimizers.py."""
+    benchmarks/bench_optimizers.py. render: see `_chi2`."""
     t0 = time.perf_counter()
     c0 = time.process_time()
     data = _data(model, observations, mu, diffuse_spacing_arcsec)
@@ -256,7 +283,7 @@ def run_stage(name, model, observations, source, free, steps, *, mu=None, backgr
         m = fit_map(model, data, param, method=method, max_steps=max_steps, rtol=1e-6, atol=1e-6)
         res = _StageResult(m.state, m.x, fisher_uncertainty(model, param, m.x, data))
         n_steps, ok = int(m.n_steps), bool(m.success)
-    chi2, mu = _chi2(model, data, res.state)
+    chi2, mu = _chi2(model, data, res.state, render)
     steps.append(dict(stage=name, solver=solver, n_steps=n_steps, success=ok,
                       chi2=float(sum(chi2)), seconds=round(time.perf_counter() - t0, 3),
                       cpu_seconds=round(time.process_time() - c0, 3)))
@@ -325,15 +352,18 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
     timings["build_model"] = time.perf_counter() - t0
     free = free_parameters(src, frame, options)
     noise_model = any(ob.noise_exptime_s is not None for ob in observations)
+    # the automatic stage's model and capacity: its compiled images program draws the result
+    render = clump_starts.get("render") if warm else None
     res, param, data, mu_new = run_stage("joint", model, observations, src, free, steps,
                                          mu=mu if noise_model else None, background=bg,
                                          max_steps=options.max_steps, solver=solver,
-                                         diffuse_spacing_arcsec=options.diffuse_spacing_arcsec)
+                                         diffuse_spacing_arcsec=options.diffuse_spacing_arcsec,
+                                         render=render)
     if noise_model:   # σ² from the fitted model, then once more
         res, param, data, mu_new = run_stage(
             "joint (variance from model)", model, observations, res.state.source, free, steps,
             mu=mu_new, background=res.state.background_counts_per_s, max_steps=options.max_steps,
-            solver=solver, diffuse_spacing_arcsec=options.diffuse_spacing_arcsec)
+            solver=solver, diffuse_spacing_arcsec=options.diffuse_spacing_arcsec, render=render)
     unc = res.uncertainty
     timings["total"] = time.perf_counter() - t_start
     timings["cpu_total"] = time.process_time() - c_start

@@ -104,10 +104,12 @@ def auto_starts(observations, frame, scene) -> dict:
     if cl is None or cl.count == 0:
         return None
     # the whole optimum of the counting fit starts the joint fit: host, background and fluxes
-    # too, so fit_observations skips its host-only stage (one compile and one fit fewer)
+    # too, so fit_observations skips its host-only stage (one compile and one fit fewer); its
+    # model and clump capacity draw the joint fit's images (their program is compiled)
     return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float),
             "flux": np.asarray(cl.flux, float), "host": auto.state.source.bulge,
-            "background": np.asarray(auto.state.background_counts_per_s, float)}
+            "background": np.asarray(auto.state.background_counts_per_s, float),
+            "render": (auto.model, int(auto.param.template.source.clumps.count))}
 
 
 def fit_observation_scene(scene, out_dir=None, *, progress=None):
