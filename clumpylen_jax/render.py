@@ -11,6 +11,8 @@ their cost grows with the area they cover, not with clumps × grid.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -330,39 +332,6 @@ def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
     return ic - stamp // 2, jc - stamp // 2
 
 
-def _sampled_stamps(clumps: Clumps, b, grid: Grid, stamp: int, order: int):
-    """Gauss–Legendre (order²) pixel integrals [N, stamp, stamp] of unit-flux clumps, the
-    stamps' origins (i0, j0) in `grid`, and their pixel centres (x [N, stamp], y [N, stamp]).
-
-    One broadcast evaluation over [clump, y offset, row, x offset, column]: one compiled
-    profile per stamp size, not one per sample.
-    """
-    i0, j0 = clump_stamp_origin(clumps, grid, stamp)
-    p = grid.pixel_arcsec
-    dtype = jnp.result_type(clumps.re_arcsec)
-    offs, wts = gauss_legendre_offsets(order)
-    o = jnp.asarray(offs * p, dtype)
-    w = jnp.asarray(wts, dtype)
-    k = jnp.arange(stamp)
-    xc = grid.x0_arcsec + (i0[:, None] + k).astype(dtype) * p
-    yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
-    x = xc[:, None, None, None, :] + o[None, None, None, :, None]
-    y = yc[:, None, :, None, None] + o[None, :, None, None, None]
-
-    def per_clump(a):
-        return a[:, None, None, None, None]
-
-    val = sersic_unit_brightness(
-        x, y, re_arcsec=per_clump(clumps.re_arcsec), n=per_clump(clumps.n),
-        q=per_clump(clumps.q), pa_rad=per_clump(clumps.pa_rad),
-        center1=per_clump(clumps.center_arcsec[:, 0]),
-        center2=per_clump(clumps.center_arcsec[:, 1]), b=per_clump(b))
-    wy = w[None, :, None, None, None]
-    wx = w[None, None, None, :, None]
-    stamps = jnp.sum(val * wy * wx, axis=(1, 3)) * (p * p)
-    return stamps, i0, j0, xc, yc
-
-
 def _exact_pixels(clumps: Clumps, xc, yc, stamp: int, core: int, strip: bool):
     """Flat stamp indices [N, count] of the pixels to integrate exactly.
 
@@ -419,51 +388,120 @@ def _exact_fluxes(clumps: Clumps, b, which, x_lo, x_hi, y_lo, y_hi):
     return out.reshape(-1)[:total]
 
 
+def _tile_side(sides) -> int:
+    """Side of the square tiles the stamps of these sides are cut into: their greatest common
+    divisor (every side of the ladder is a multiple of 4; one side alone: the stamp itself)."""
+    return math.gcd(*(int(s) for s in sides))
+
+
+def _sampled_tiles(clumps: Clumps, b, which, i0, j0, grids, starts, tile: int, order: int):
+    """Gauss–Legendre (order²) pixel integrals [T, tile, tile] of unit-flux clumps `which`
+    [T] on tiles of `tile` × `tile` pixels with pixel [0, 0] at (i0, j0) [T] of grids[g]
+    for the tiles from starts[g] on (static, increasing): one broadcast evaluation over [tile, y offset, row,
+    x offset, column] for every tile of every stamp size and grid, so that the profile is
+    compiled once however many stamp sizes and grids there are."""
+    dtype = jnp.result_type(clumps.re_arcsec)
+    offs, wts = gauss_legendre_offsets(order)
+    # each tile's grid, from the static ranges (not a [T] constant in the program)
+    target = jnp.sum(jnp.arange(which.shape[0])[:, None] >= jnp.asarray(starts[1:] or [
+        which.shape[0]], jnp.int32)[None, :], axis=1)
+    x0 = jnp.asarray([g.x0_arcsec for g in grids], dtype)[target]
+    y0 = jnp.asarray([g.y0_arcsec for g in grids], dtype)[target]
+    p = jnp.asarray([g.pixel_arcsec for g in grids], dtype)[target]
+    o = jnp.asarray(offs, dtype)[None, :] * p[:, None]                  # [T, order]
+    w = jnp.asarray(wts, dtype)
+    k = jnp.arange(tile)
+    xc = x0[:, None] + (i0[:, None] + k).astype(dtype) * p[:, None]    # [T, tile]
+    yc = y0[:, None] + (j0[:, None] + k).astype(dtype) * p[:, None]
+    x = xc[:, None, None, None, :] + o[:, None, None, :, None]
+    y = yc[:, None, :, None, None] + o[:, :, None, None, None]
+
+    def per_tile(a):
+        return a[which][:, None, None, None, None]
+
+    val = sersic_unit_brightness(
+        x, y, re_arcsec=per_tile(clumps.re_arcsec), n=per_tile(clumps.n),
+        q=per_tile(clumps.q), pa_rad=per_tile(clumps.pa_rad),
+        center1=per_tile(clumps.center_arcsec[:, 0]),
+        center2=per_tile(clumps.center_arcsec[:, 1]), b=per_tile(b))
+    wy = w[None, :, None, None, None]
+    wx = w[None, None, None, :, None]
+    return jnp.sum(val * wy * wx, axis=(1, 3)) * (p * p)[:, None, None]
+
+
 def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                       strip: bool = False):
-    """Unit-flux stamps of clumps on several grids: for each (grid, groups) of `targets`,
-    [(stamps [n, side, side], i0, j0, indices)] by stamp group (indices into `clumps`). A
-    group given as (side, indices, strip) overrides `strip`.
+    """Unit-flux stamps of clumps on several grids: for each (grid, groups) of `targets`, a
+    list [(tiles [T, t, t], i0 [T], j0 [T], clump index [T])] (empty without groups) of the
+    square tiles its stamp groups are cut into. A group is (side, indices into `clumps`) or
+    (side, indices, strip), which overrides `strip`; a clump of a group of side s has a stamp
+    of s × s pixels around its centre, cut into (s / t)² tiles of t × t (t: the greatest
+    common divisor of the sides, `_tile_side`), each with its own origin (i0, j0) in the grid.
 
     Pixels are Gauss–Legendre sampled (order²) except a block of core² pixels around the
     centre, integrated exactly. strip=True integrates exactly instead the 3·stamp + core²
     pixels nearest the major axis: a thin profile (minor axis below a pixel, such as a
     lensed clump) puts its light on that line, where sampling misses or overweights it.
-    b(n) and the exact integrals of every group on every grid are one computation each,
-    so the incomplete gamma function compiles twice however many stamp sizes there are.
+    b(n), the sampled tiles and the exact integrals of every group on every grid are one
+    computation each (`_sampled_tiles`, `_exact_fluxes`), so the profile and the incomplete
+    gamma function compile once however many stamp sizes and grids there are (issue 20: one
+    copy per stamp group was a fifth of the band render's program).
     """
+    out = [[] for _ in targets]
+    sides = [side for _, groups in targets for side, *_ in groups]
+    if not sides:
+        return out
+    tile = _tile_side(sides)
     dtype = jnp.result_type(clumps.re_arcsec)
     b = profiles.sersic_b(clumps.n)
-    parts, which, edges = [], [], []
+    which, ti0, tj0, ranges = [], [], [], []
+    exact_which, edges, at_tile, at_pixel = [], [], [], []
+    start = 0
     for t, (grid, groups) in enumerate(targets):
         p = grid.pixel_arcsec
+        first = start
         for side, idx, *group_strip in groups:
             thin = group_strip[0] if group_strip else strip
             idx = jnp.asarray(idx)
+            n, m = idx.shape[0], side // tile
             sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
-            stamps, i0, j0, xc, yc = _sampled_stamps(sub, b[idx], grid, side, order)
+            i0, j0 = clump_stamp_origin(sub, grid, side)
+            # the tiles of each stamp, row-major: tile (r, c) has its pixel [0, 0] at
+            # stamp pixel (r t, c t)
+            tr, tc = np.divmod(np.arange(m * m), m)
+            which.append(jnp.repeat(idx, m * m))
+            ti0.append((i0[:, None] + jnp.asarray(tc * tile, i0.dtype)).ravel())
+            tj0.append((j0[:, None] + jnp.asarray(tr * tile, j0.dtype)).ravel())
             c = min(core, side)
-            flat = _exact_pixels(sub, xc, yc, side, c, thin) if c > 0 else None
-            parts.append((t, stamps, i0, j0, idx, flat))
-            if flat is not None:
-                which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
-                cols = (i0[:, None] + flat % side).ravel()
-                rows = (j0[:, None] + flat // side).ravel()
-                edges.append(_pixel_edges(cols, grid.x0_arcsec, p, dtype)
-                             + _pixel_edges(rows, grid.y0_arcsec, p, dtype))
-    if which:
-        exact = _exact_fluxes(clumps, b, jnp.concatenate(which),
+            if c > 0:
+                xc = yc = None
+                if thin:
+                    k = jnp.arange(side)
+                    xc = grid.x0_arcsec + (i0[:, None] + k).astype(dtype) * p
+                    yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
+                flat = _exact_pixels(sub, xc, yc, side, c, thin)
+                row, col = flat // side, flat % side
+                at_tile.append((start + jnp.arange(n)[:, None] * (m * m)
+                                + (row // tile) * m + col // tile).ravel())
+                at_pixel.append(((row % tile) * tile + col % tile).ravel())
+                exact_which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
+                edges.append(_pixel_edges((i0[:, None] + col).ravel(), grid.x0_arcsec, p, dtype)
+                             + _pixel_edges((j0[:, None] + row).ravel(), grid.y0_arcsec, p,
+                                            dtype))
+            start += n * m * m
+        ranges.append((first, start))
+    which, ti0, tj0 = (jnp.concatenate(v) for v in (which, ti0, tj0))
+    stamps = _sampled_tiles(clumps, b, which, ti0, tj0, [grid for grid, _ in targets],
+                            [lo for lo, _ in ranges], tile, order)
+    if exact_which:
+        exact = _exact_fluxes(clumps, b, jnp.concatenate(exact_which),
                               *(jnp.concatenate(v) for v in zip(*edges)))
-        exact = exact.astype(dtype)
-    out, start = [[] for _ in targets], 0
-    for t, stamps, i0, j0, idx, flat in parts:
-        if flat is not None:
-            n, side = stamps.shape[0], stamps.shape[1]
-            vals = exact[start:start + flat.size].reshape(flat.shape)
-            start += flat.size
-            rows = jnp.arange(n)[:, None]
-            stamps = stamps.reshape(n, -1).at[rows, flat].set(vals).reshape(n, side, side)
-        out[t].append((stamps, i0, j0, idx))
+        stamps = (stamps.reshape(start, tile * tile)
+                  .at[jnp.concatenate(at_tile), jnp.concatenate(at_pixel)]
+                  .set(exact.astype(dtype)).reshape(start, tile, tile))
+    for t, (lo, hi) in enumerate(ranges):
+        if hi > lo:
+            out[t].append((stamps[lo:hi], ti0[lo:hi], tj0[lo:hi], which[lo:hi]))
     return out
 
 
