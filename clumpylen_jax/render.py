@@ -217,6 +217,33 @@ def _sample_sum(brightness, grid: Grid, order: int, dtype):
     return jax.lax.fori_loop(0, order * order, add_sample, jnp.zeros(grid.shape, dtype))
 
 
+def _sample_sums(brightness, grids, order: int, dtype):
+    """`_sample_sum` on each grid of `grids`, in one loop whose body evaluates `brightness`
+    once per sample on the pixels of every grid at once (flattened and concatenated): the
+    profile (a textured disk: thousands of operations) is compiled once, not once per grid.
+    Each pixel's samples are the values `_sample_sum` adds, in the same order."""
+    if len(grids) == 1:
+        return [_sample_sum(brightness, grids[0], order, dtype)]
+    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))
+    w = jnp.asarray([wy * wx for wy in wts for wx in wts], dtype)
+    dx = [jnp.asarray([ox * g.pixel_arcsec for _ in offs for ox in offs], dtype) for g in grids]
+    dy = [jnp.asarray([oy * g.pixel_arcsec for oy in offs for _ in offs], dtype) for g in grids]
+    xc = [jnp.asarray(g.x_centers(), dtype)[None, :] for g in grids]
+    yc = [jnp.asarray(g.y_centers(), dtype)[:, None] for g in grids]
+    splits = np.cumsum([g.ny * g.nx for g in grids])[:-1].tolist()
+
+    def add_sample(k, acc):
+        x = jnp.concatenate([jnp.broadcast_to(xc[t] + dx[t][k], g.shape).ravel()
+                             for t, g in enumerate(grids)])
+        y = jnp.concatenate([jnp.broadcast_to(yc[t] + dy[t][k], g.shape).ravel()
+                             for t, g in enumerate(grids)])
+        vals = jnp.split(brightness(x, y), splits)
+        return tuple(a + w[k] * v.reshape(g.shape) for a, v, g in zip(acc, vals, grids))
+
+    acc = tuple(jnp.zeros(g.shape, dtype) for g in grids)
+    return list(jax.lax.fori_loop(0, order * order, add_sample, acc))
+
+
 def _pixel_edges(index, origin, pixel, dtype):
     """(low, high) edges (arcsec) of the pixels with integer `index` on an axis whose pixel 0
     is centred at `origin`. Neighbours share an edge bit for bit (k + 0.5 and (k + 1) − 0.5
@@ -238,23 +265,10 @@ def _exact_core(image, grid: Grid, core: int, kw, b):
     """Replace the core × core pixels around the Sérsic centre by exact pixel integrals."""
     if core <= 0:
         return image
-    p = grid.pixel_arcsec
-    dtype = image.dtype
-    i0 = _pixel_index(kw["center1"], grid.x0_arcsec, p) - core // 2
-    j0 = _pixel_index(kw["center2"], grid.y0_arcsec, p) - core // 2
-    k = jnp.arange(core)
-    x_lo, x_hi = (e[None, :] for e in _pixel_edges(i0 + k, grid.x0_arcsec, p, dtype))
-    y_lo, y_hi = (e[:, None] for e in _pixel_edges(j0 + k, grid.y0_arcsec, p, dtype))
-    block = profiles.sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, flux=1.0, b=b, **kw)
-    padded = jnp.pad(image, core)
-    start_j = jnp.clip(j0 + core, 0, grid.ny + core)
-    start_i = jnp.clip(i0 + core, 0, grid.nx + core)
-    # where the clamp moved the block, it lies wholly in the padding and is cropped away
-    moved = (start_j != j0 + core) | (start_i != i0 + core)
-    current = jax.lax.dynamic_slice(padded, (start_j, start_i), (core, core))
-    block = jnp.where(moved, current, block.astype(dtype))
-    padded = jax.lax.dynamic_update_slice(padded, block, (start_j, start_i))
-    return padded[core:core + grid.ny, core:core + grid.nx]
+    (i0, j0), (x_lo, x_hi, y_lo, y_hi) = _core_block(grid, core, kw, image.dtype)
+    block = profiles.sersic_pixel_flux_exact(x_lo[:1], x_hi[:1], y_lo[:, :1], y_hi[:, :1],
+                                             flux=1.0, b=b, **kw)
+    return _set_core_block(image, grid, core, i0, j0, block)
 
 
 def _axis_distance(x, y, center1, center2, pa_rad):
@@ -265,6 +279,38 @@ def _axis_distance(x, y, center1, center2, pa_rad):
 def _exact_strip(image, grid: Grid, core: int, kw, b):
     """Replace by exact integrals the 3·max(nx, ny) + core² pixels whose centres lie nearest
     the major axis (≥ ~1 pixel on each side of it across the whole grid)."""
+    flat, edges = _strip_pixels(image, grid, core, kw)
+    vals = profiles.sersic_pixel_flux_exact(*edges, flux=1.0, b=b, **kw)
+    return image.ravel().at[flat].set(vals.astype(image.dtype)).reshape(image.shape)
+
+
+def _core_block(grid: Grid, core: int, kw, dtype):
+    """(i0, j0) of the core × core block around the Sérsic centre and its pixels' edges
+    (x_lo, x_hi, y_lo, y_hi), [core, core] each."""
+    p = grid.pixel_arcsec
+    i0 = _pixel_index(kw["center1"], grid.x0_arcsec, p) - core // 2
+    j0 = _pixel_index(kw["center2"], grid.y0_arcsec, p) - core // 2
+    k = jnp.arange(core)
+    x_lo, x_hi = (e[None, :] for e in _pixel_edges(i0 + k, grid.x0_arcsec, p, dtype))
+    y_lo, y_hi = (e[:, None] for e in _pixel_edges(j0 + k, grid.y0_arcsec, p, dtype))
+    return (i0, j0), [jnp.broadcast_to(e, (core, core)) for e in (x_lo, x_hi, y_lo, y_hi)]
+
+
+def _set_core_block(image, grid: Grid, core: int, i0, j0, block):
+    """`_exact_core`'s placing of the exact block (i0, j0: its pixel [0, 0])."""
+    padded = jnp.pad(image, core)
+    start_j = jnp.clip(j0 + core, 0, grid.ny + core)
+    start_i = jnp.clip(i0 + core, 0, grid.nx + core)
+    # where the clamp moved the block, it lies wholly in the padding and is cropped away
+    moved = (start_j != j0 + core) | (start_i != i0 + core)
+    current = jax.lax.dynamic_slice(padded, (start_j, start_i), (core, core))
+    block = jnp.where(moved, current, block.astype(image.dtype))
+    padded = jax.lax.dynamic_update_slice(padded, block, (start_j, start_i))
+    return padded[core:core + grid.ny, core:core + grid.nx]
+
+
+def _strip_pixels(image, grid: Grid, core: int, kw):
+    """`_exact_strip`'s pixels: their flat indices and edges (x_lo, x_hi, y_lo, y_hi)."""
     ny, nx = grid.shape
     count = min(nx * ny, 3 * max(nx, ny) + core * core)
     p = grid.pixel_arcsec
@@ -273,10 +319,45 @@ def _exact_strip(image, grid: Grid, core: int, kw, b):
     yc = jnp.asarray(grid.y_centers(), dtype)
     dist = _axis_distance(xc[None, :], yc[:, None], kw["center1"], kw["center2"], kw["pa_rad"])
     _, flat = jax.lax.top_k(-jax.lax.stop_gradient(dist).ravel(), count)
-    x_lo, x_hi = _pixel_edges(flat % nx, grid.x0_arcsec, p, dtype)
-    y_lo, y_hi = _pixel_edges(flat // nx, grid.y0_arcsec, p, dtype)
-    vals = profiles.sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, flux=1.0, b=b, **kw)
-    return image.ravel().at[flat].set(vals.astype(dtype)).reshape(image.shape)
+    return flat, [*_pixel_edges(flat % nx, grid.x0_arcsec, p, dtype),
+                  *_pixel_edges(flat // nx, grid.y0_arcsec, p, dtype)]
+
+
+def _exact_on(images, grids, core: int, strips, kw, b):
+    """`_exact_strip` (strips[t]) or `_exact_core` of one Sérsic on each image of `images`
+    (on `grids`), its exact pixel integrals of every grid made by one kernel call."""
+    if core <= 0:
+        return list(images)
+    if len(images) == 1:    # as one grid always was
+        f = _exact_strip if strips[0] else _exact_core
+        return [f(images[0], grids[0], core, kw, b)]
+    where, edges = [], []
+    for img, g, strip in zip(images, grids, strips):
+        at, e = (_strip_pixels(img, g, core, kw) if strip else
+                 _core_block(g, core, kw, img.dtype))
+        where.append(at)
+        edges.append([v.ravel() for v in e])
+    sizes = [e[0].size for e in edges]
+    vals = profiles.sersic_pixel_flux_exact(*(jnp.concatenate(v) for v in zip(*edges)),
+                                            flux=1.0, b=b, **kw)
+    vals = jnp.split(vals, np.cumsum(sizes)[:-1].tolist())
+    out = []
+    for img, g, strip, at, v in zip(images, grids, strips, where, vals):
+        if strip:
+            out.append(img.ravel().at[at].set(v.astype(img.dtype)).reshape(img.shape))
+        else:
+            out.append(_set_core_block(img, g, core, *at, v.reshape(core, core)))
+    return out
+
+
+def _plain_sersic_images(kw, grids, order: int, core: int, strips, dtype):
+    """`_plain_sersic_image` on each grid of `grids` (strips: per grid): one compiled
+    profile and one exact-pixel kernel for all of them."""
+    b = profiles.sersic_b(kw["n"])
+    sums = _sample_sums(lambda x, y: sersic_unit_brightness(x, y, b=b, **kw), grids, order,
+                        dtype)
+    images = [s * _pixel_area(g) for s, g in zip(sums, grids)]
+    return _exact_on(images, grids, core, strips, kw, b)
 
 
 def _plain_sersic_image(kw, grid: Grid, order: int, core: int, strip: bool, dtype):
@@ -322,6 +403,28 @@ def disk_image_scale(d: Disk, grid: Grid) -> float:
     """disk_image = disk_image_values × this: the pixel area for a sampled (armed or
     textured) disk, else 1."""
     return 1.0 if d.arms is None and d.texture is None else _pixel_area(grid)
+
+
+def sersic_images(s: Sersic, grids, *, order: int = 4, core: int = 5, strips=None,
+                  dtype=None):
+    """`sersic_image` on each grid of `grids` (strips: per grid, default none), computed
+    together: one compiled profile and one exact-pixel kernel however many grids."""
+    dtype = dtype or jnp.result_type(s.re_arcsec)
+    strips = strips or [False] * len(grids)
+    return _plain_sersic_images(_sersic_kw(s), list(grids), order, core, strips, dtype)
+
+
+def disk_images_values(d: Disk, grids, *, order: int = 4, core: int = 5, strips=None,
+                       dtype=None):
+    """`disk_image_values` on each grid of `grids` (strips: per grid, default none), computed
+    together: one compiled profile (and modulation mean) however many grids."""
+    dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
+    grids = list(grids)
+    strips = strips or [False] * len(grids)
+    if d.arms is None and d.texture is None:
+        return _plain_sersic_images(_disk_kw(d), grids, order, core, strips, dtype)
+    mean = disk_modulation_mean(d)
+    return _sample_sums(lambda x, y: disk_unit_brightness(d, x, y, mean), grids, order, dtype)
 
 
 def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):

@@ -47,18 +47,18 @@ class UnlensedHosts(Renderer):
         """Per sub-grid of `subgrids` (in its order): the unit-flux images (bulge, disk) on it,
         None for a component the source lacks; the disk's as `render.disk_image_values`
         (`subgrid_light` scales it, so that held values give the same bits)."""
-        return tuple(self._unit_images(source, g, k) for g, k in subgrids.items())
-
-    def _unit_images(self, source: Source, g, k: int):
-        strip_bulge, strip_disk = self.strips[k]
-        bulge = disk = None
+        # every sub-grid at once: one compiled profile and one exact-pixel kernel per
+        # component, not one per sub-grid
+        grids = list(subgrids)
+        strips = [self.strips[k] for k in subgrids.values()]
+        bulge = disk = [None] * len(grids)
         if source.bulge is not None:
-            bulge = render.sersic_image(source.bulge, g, order=self.order, core=self.core,
-                                        strip=strip_bulge)
+            bulge = render.sersic_images(source.bulge, grids, order=self.order, core=self.core,
+                                         strips=[s[0] for s in strips])
         if source.disk is not None:
-            disk = render.disk_image_values(source.disk, g, order=self.order, core=self.core,
-                                            strip=strip_disk)
-        return bulge, disk
+            disk = render.disk_images_values(source.disk, grids, order=self.order,
+                                             core=self.core, strips=[s[1] for s in strips])
+        return tuple(zip(bulge, disk))
 
     def subgrid_light(self, source: Source, subgrids, units=None):
         """units: `unit_light(source, subgrids)` computed before (`HeldHosts`), or None."""
