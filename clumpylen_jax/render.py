@@ -379,15 +379,17 @@ def sersic_image(s: Sersic, grid: Grid, *, order: int = 4, core: int = 5, strip:
 
 
 def disk_image(d: Disk, grid: Grid, *, order: int = 4, core: int = 5, strip: bool = False,
-               dtype=None):
-    """Unit-flux pixel integrals of a disk; exact core (or strip) only when it is a plain Sérsic."""
-    values = disk_image_values(d, grid, order=order, core=core, strip=strip, dtype=dtype)
+               dtype=None, modulation_mean=None):
+    """Unit-flux pixel integrals of a disk; exact core (or strip) only when it is a plain Sérsic.
+    modulation_mean: `disk_modulation_mean(d)` computed before, or None (computed here)."""
+    values = disk_image_values(d, grid, order=order, core=core, strip=strip, dtype=dtype,
+                               modulation_mean=modulation_mean)
     scale = disk_image_scale(d, grid)
     return values if scale == 1.0 else values * scale
 
 
 def disk_image_values(d: Disk, grid: Grid, *, order: int = 4, core: int = 5,
-                      strip: bool = False, dtype=None):
+                      strip: bool = False, dtype=None, modulation_mean=None):
     """`disk_image` / `disk_image_scale`. Kept apart for a program that takes the values as
     data (`model.hosts.UnlensedHosts`): XLA evaluates flux × (values × scale) as
     values × (flux × scale), so a held image multiplied by a flux would differ from
@@ -395,7 +397,7 @@ def disk_image_values(d: Disk, grid: Grid, *, order: int = 4, core: int = 5,
     dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
     if d.arms is None and d.texture is None:
         return _plain_sersic_image(_disk_kw(d), grid, order, core, strip, dtype)
-    mean = disk_modulation_mean(d)
+    mean = disk_modulation_mean(d) if modulation_mean is None else modulation_mean
     return _sample_sum(lambda x, y: disk_unit_brightness(d, x, y, mean), grid, order, dtype)
 
 
@@ -415,7 +417,7 @@ def sersic_images(s: Sersic, grids, *, order: int = 4, core: int = 5, strips=Non
 
 
 def disk_images_values(d: Disk, grids, *, order: int = 4, core: int = 5, strips=None,
-                       dtype=None):
+                       dtype=None, modulation_mean=None):
     """`disk_image_values` on each grid of `grids` (strips: per grid, default none), computed
     together: one compiled profile (and modulation mean) however many grids."""
     dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
@@ -423,7 +425,7 @@ def disk_images_values(d: Disk, grids, *, order: int = 4, core: int = 5, strips=
     strips = strips or [False] * len(grids)
     if d.arms is None and d.texture is None:
         return _plain_sersic_images(_disk_kw(d), grids, order, core, strips, dtype)
-    mean = disk_modulation_mean(d)
+    mean = disk_modulation_mean(d) if modulation_mean is None else modulation_mean
     return _sample_sums(lambda x, y: disk_unit_brightness(d, x, y, mean), grids, order, dtype)
 
 
