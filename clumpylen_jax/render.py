@@ -437,13 +437,13 @@ def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
     return ic - stamp // 2, jc - stamp // 2
 
 
-def _exact_pixels(clumps: Clumps, xc, yc, stamp: int, core: int, strip: bool):
-    """Flat stamp indices [N, count] of the pixels to integrate exactly.
+def _exact_pixels(clumps: Clumps, xc, yc, stamp: int, core: int, strip: bool, n: int):
+    """Flat stamp indices [n, count] of the pixels to integrate exactly, for n clumps.
 
     A core × core block around the centre (which sits at stamp index stamp // 2), or,
-    with strip, the 3·stamp + core² pixels whose centres lie nearest the major axis.
+    with strip, the 3·stamp + core² pixels whose centres lie nearest the major axis
+    (clumps: those n, with the pixel centres xc, yc of their stamps; unused otherwise).
     """
-    n = clumps.count
     if strip:
         count = min(stamp * stamp, 3 * stamp + core * core)
         dist = _axis_distance(xc[:, None, :], yc[:, :, None], clumps.center_arcsec[:, 0, None, None],
@@ -565,12 +565,15 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
     for t, (grid, groups) in enumerate(targets):
         p = grid.pixel_arcsec
         first = start
+        # the pixel of every clump's centre, once per grid (`clump_stamp_origin`)
+        ic = _pixel_index(clumps.center_arcsec[:, 0], grid.x0_arcsec, p)
+        jc = _pixel_index(clumps.center_arcsec[:, 1], grid.y0_arcsec, p)
+        cols, rows = [], []
         for side, idx, *group_strip in groups:
             thin = group_strip[0] if group_strip else strip
             idx = jnp.asarray(idx)
             n, m = idx.shape[0], side // tile
-            sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
-            i0, j0 = clump_stamp_origin(sub, grid, side)
+            i0, j0 = ic[idx] - side // 2, jc[idx] - side // 2
             # the tiles of each stamp, row-major: tile (r, c) has its pixel [0, 0] at
             # stamp pixel (r t, c t)
             tr, tc = np.divmod(np.arange(m * m), m)
@@ -584,16 +587,19 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                     k = jnp.arange(side)
                     xc = grid.x0_arcsec + (i0[:, None] + k).astype(dtype) * p
                     yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
-                flat = _exact_pixels(sub, xc, yc, side, c, thin)
+                sub = jax.tree_util.tree_map(lambda a: a[idx], clumps) if thin else None
+                flat = _exact_pixels(sub, xc, yc, side, c, thin, n)
                 row, col = flat // side, flat % side
                 at_tile.append((start + jnp.arange(n)[:, None] * (m * m)
                                 + (row // tile) * m + col // tile).ravel())
                 at_pixel.append(((row % tile) * tile + col % tile).ravel())
                 exact_which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
-                edges.append(_pixel_edges((i0[:, None] + col).ravel(), grid.x0_arcsec, p, dtype)
-                             + _pixel_edges((j0[:, None] + row).ravel(), grid.y0_arcsec, p,
-                                            dtype))
+                cols.append((i0[:, None] + col).ravel())
+                rows.append((j0[:, None] + row).ravel())
             start += n * m * m
+        if cols:    # the exact pixels' edges, once per grid
+            edges.append(_pixel_edges(jnp.concatenate(cols), grid.x0_arcsec, p, dtype)
+                         + _pixel_edges(jnp.concatenate(rows), grid.y0_arcsec, p, dtype))
         ranges.append((first, start))
     which, ti0, tj0 = (jnp.concatenate(v) for v in (which, ti0, tj0))
     stamps = _sampled_tiles(clumps, b, which, ti0, tj0, [grid for grid, _ in targets],
