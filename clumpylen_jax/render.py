@@ -534,6 +534,16 @@ def _sampled_tiles(clumps: Clumps, b, which, i0, j0, grids, starts, tile: int, o
     return jnp.sum(val * wy * wx, axis=(1, 3)) * (p * p)[:, None, None]
 
 
+def _div(a, k: int):
+    """a // k for integers a ≥ 0 (truncating: no sign correction)."""
+    return jax.lax.div(a, jnp.asarray(k, a.dtype))
+
+
+def _rem(a, k: int):
+    """a % k for integers a ≥ 0."""
+    return jax.lax.rem(a, jnp.asarray(k, a.dtype))
+
+
 def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                       strip: bool = False):
     """Unit-flux stamps of clumps on several grids: for each (grid, groups) of `targets`, a
@@ -569,11 +579,16 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
         ic = _pixel_index(clumps.center_arcsec[:, 0], grid.x0_arcsec, p)
         jc = _pixel_index(clumps.center_arcsec[:, 1], grid.y0_arcsec, p)
         cols, rows = [], []
-        for side, idx, *group_strip in groups:
+        # one gather per grid, not per group: the groups' clumps' centre pixels
+        indices = [jnp.asarray(idx) for _, idx, *_ in groups]
+        offsets = np.cumsum([0] + [idx.shape[0] for idx in indices]).tolist()
+        ic, jc = (v[jnp.concatenate(indices)] for v in (ic, jc))
+        for g, (side, _, *group_strip) in enumerate(groups):
             thin = group_strip[0] if group_strip else strip
-            idx = jnp.asarray(idx)
+            idx = indices[g]
             n, m = idx.shape[0], side // tile
-            i0, j0 = ic[idx] - side // 2, jc[idx] - side // 2
+            lo, hi = offsets[g], offsets[g + 1]
+            i0, j0 = ic[lo:hi] - side // 2, jc[lo:hi] - side // 2
             # the tiles of each stamp, row-major: tile (r, c) has its pixel [0, 0] at
             # stamp pixel (r t, c t)
             tr, tc = np.divmod(np.arange(m * m), m)
@@ -589,10 +604,12 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                     yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
                 sub = jax.tree_util.tree_map(lambda a: a[idx], clumps) if thin else None
                 flat = _exact_pixels(sub, xc, yc, side, c, thin, n)
-                row, col = flat // side, flat % side
+                # indices ≥ 0: truncating division (lax.div, lax.rem) is floor division here,
+                # without jnp's sign corrections
+                row, col = _div(flat, side), _rem(flat, side)
                 at_tile.append((start + jnp.arange(n)[:, None] * (m * m)
-                                + (row // tile) * m + col // tile).ravel())
-                at_pixel.append(((row % tile) * tile + col % tile).ravel())
+                                + _div(row, tile) * m + _div(col, tile)).ravel())
+                at_pixel.append((_rem(row, tile) * tile + _rem(col, tile)).ravel())
                 exact_which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
                 cols.append((i0[:, None] + col).ravel())
                 rows.append((j0[:, None] + row).ravel())
