@@ -412,8 +412,11 @@ def sersic_images(s: Sersic, grids, *, order: int = 4, core: int = 5, strips=Non
     """`sersic_image` on each grid of `grids` (strips: per grid, default none), computed
     together: one compiled profile and one exact-pixel kernel however many grids."""
     dtype = dtype or jnp.result_type(s.re_arcsec)
+    grids = list(grids)
+    if not grids:
+        return []
     strips = strips or [False] * len(grids)
-    return _plain_sersic_images(_sersic_kw(s), list(grids), order, core, strips, dtype)
+    return _plain_sersic_images(_sersic_kw(s), grids, order, core, strips, dtype)
 
 
 def disk_images_values(d: Disk, grids, *, order: int = 4, core: int = 5, strips=None,
@@ -422,6 +425,8 @@ def disk_images_values(d: Disk, grids, *, order: int = 4, core: int = 5, strips=
     together: one compiled profile (and modulation mean) however many grids."""
     dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
     grids = list(grids)
+    if not grids:
+        return []
     strips = strips or [False] * len(grids)
     if d.arms is None and d.texture is None:
         return _plain_sersic_images(_disk_kw(d), grids, order, core, strips, dtype)
