@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -246,8 +247,7 @@ def _sample_catalog(scene, bulge, disk, cosmology, programs):
     # them. The host's arrays are baked into the brightness, as a jit's closure has them.
     if host_name == "disk":
         # one compiled quadrature, not hundreds of op-by-op dispatches
-        mean = _program(programs, "population.disk_modulation_mean", render.disk_modulation_mean,
-                        host_tree)
+        mean = _modulation_mean(programs, host_tree)
         brightness = _chunked_calls(programs, "population.disk_brightness", _disk_brightness,
                                     (host_tree, mean))
         geo = host_tree.sersic
@@ -411,6 +411,29 @@ def _program_folder():
     return cache_root() / "programs" if cache_enabled() else None
 
 
+_MEANS = {}
+_MEANS_LOCK = threading.Lock()
+
+
+def _modulation_mean(programs, disk):
+    """`render.disk_modulation_mean(disk)` by a program of its own, computed once per process
+    for a disk: the population and every host-light program take it as an input (issue 20:
+    each held a copy of its quadrature, ~5k lines of optimised HLO)."""
+    if disk is None or disk.texture is None:
+        return None
+    # the mean does not depend on the fluxes: one program and value for any bands
+    disk = dataclasses.replace(disk, sersic=dataclasses.replace(
+        disk.sersic, flux=jnp.zeros(1, jnp.result_type(disk.sersic.re_arcsec))))
+    leaves, tree = jax.tree_util.tree_flatten(disk)
+    key = (str(tree),) + tuple((np.asarray(x).dtype.str, np.asarray(x).tobytes())
+                               for x in leaves)
+    with _MEANS_LOCK:      # asked for by the main thread and the early launches
+        if key not in _MEANS:
+            _MEANS[key] = _program(programs, "population.disk_modulation_mean",
+                                   render.disk_modulation_mean, disk)
+        return _MEANS[key]
+
+
 def _program(programs, name: str, fun, *args):
     """fun(*args) as one program (arrays traced, every other leaf static); its executable
     kept between runs in `programs` (`programcache`: a folder, a `ReadAhead`, or None)."""
@@ -429,12 +452,13 @@ def _with_host_light(programs, model, source: Source):
     # the host renderer (the traced pixels), the sub-grids and the host
     subgrids = tuple(first_band_per_subgrid(model.layouts).items())
     units = _kept_light(programs, "host_unit_light", _host_unit_light, model.hosts, subgrids,
-                        Source(source.bulge, source.disk, None))
+                        Source(source.bulge, source.disk, None),
+                        _modulation_mean(programs, source.disk))
     return model.with_host_light(units)
 
 
-def _host_unit_light(hosts, subgrids, source: Source):
-    return hosts.unit_light(source, dict(subgrids))
+def _host_unit_light(hosts, subgrids, source: Source, modulation_mean=None):
+    return hosts.unit_light(source, dict(subgrids), modulation_mean)
 
 
 def _kept_light(programs, name: str, fun, *args):
@@ -822,7 +846,8 @@ def _hr_source_plane(prep: Prepared, mono):
     host = (None, None)
     if mono.bulge is not None or mono.disk is not None:
         host = _kept_light(prep.programs, "source_plane_host_light", _source_plane_host_light,
-                           Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy)
+                           Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy,
+                           _modulation_mean(prep.programs, mono.disk))
     return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
                            host, sgrid, prep.accuracy, groups)
 
@@ -867,16 +892,17 @@ def _hr_rgb_index(prep: Prepared, names):
     return [names.index(n) for n in rgb]
 
 
-def _source_plane_host_light(source: Source, grid, accuracy):
+def _source_plane_host_light(source: Source, grid, accuracy, modulation_mean=None):
     """Unit-flux pixel integrals (bulge, disk) [ny, nx] of the source's host on the
-    source-plane grid, None for a component it lacks."""
+    source-plane grid, None for a component it lacks (modulation_mean: the disk's, or None:
+    computed here)."""
     bulge = disk = None
     if source.bulge is not None:
         bulge = render.sersic_image(source.bulge, grid, order=accuracy.source_order,
                                     core=accuracy.exact_core)
     if source.disk is not None:
         disk = render.disk_image(source.disk, grid, order=accuracy.source_order,
-                                 core=accuracy.exact_core)
+                                 core=accuracy.exact_core, modulation_mean=modulation_mean)
     return bulge, disk
 
 

@@ -11,6 +11,8 @@ their cost grows with the area they cover, not with clumps × grid.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -215,6 +217,33 @@ def _sample_sum(brightness, grid: Grid, order: int, dtype):
     return jax.lax.fori_loop(0, order * order, add_sample, jnp.zeros(grid.shape, dtype))
 
 
+def _sample_sums(brightness, grids, order: int, dtype):
+    """`_sample_sum` on each grid of `grids`, in one loop whose body evaluates `brightness`
+    once per sample on the pixels of every grid at once (flattened and concatenated): the
+    profile (a textured disk: thousands of operations) is compiled once, not once per grid.
+    Each pixel's samples are the values `_sample_sum` adds, in the same order."""
+    if len(grids) == 1:
+        return [_sample_sum(brightness, grids[0], order, dtype)]
+    offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))
+    w = jnp.asarray([wy * wx for wy in wts for wx in wts], dtype)
+    dx = [jnp.asarray([ox * g.pixel_arcsec for _ in offs for ox in offs], dtype) for g in grids]
+    dy = [jnp.asarray([oy * g.pixel_arcsec for oy in offs for _ in offs], dtype) for g in grids]
+    xc = [jnp.asarray(g.x_centers(), dtype)[None, :] for g in grids]
+    yc = [jnp.asarray(g.y_centers(), dtype)[:, None] for g in grids]
+    splits = np.cumsum([g.ny * g.nx for g in grids])[:-1].tolist()
+
+    def add_sample(k, acc):
+        x = jnp.concatenate([jnp.broadcast_to(xc[t] + dx[t][k], g.shape).ravel()
+                             for t, g in enumerate(grids)])
+        y = jnp.concatenate([jnp.broadcast_to(yc[t] + dy[t][k], g.shape).ravel()
+                             for t, g in enumerate(grids)])
+        vals = jnp.split(brightness(x, y), splits)
+        return tuple(a + w[k] * v.reshape(g.shape) for a, v, g in zip(acc, vals, grids))
+
+    acc = tuple(jnp.zeros(g.shape, dtype) for g in grids)
+    return list(jax.lax.fori_loop(0, order * order, add_sample, acc))
+
+
 def _pixel_edges(index, origin, pixel, dtype):
     """(low, high) edges (arcsec) of the pixels with integer `index` on an axis whose pixel 0
     is centred at `origin`. Neighbours share an edge bit for bit (k + 0.5 and (k + 1) − 0.5
@@ -236,23 +265,10 @@ def _exact_core(image, grid: Grid, core: int, kw, b):
     """Replace the core × core pixels around the Sérsic centre by exact pixel integrals."""
     if core <= 0:
         return image
-    p = grid.pixel_arcsec
-    dtype = image.dtype
-    i0 = _pixel_index(kw["center1"], grid.x0_arcsec, p) - core // 2
-    j0 = _pixel_index(kw["center2"], grid.y0_arcsec, p) - core // 2
-    k = jnp.arange(core)
-    x_lo, x_hi = (e[None, :] for e in _pixel_edges(i0 + k, grid.x0_arcsec, p, dtype))
-    y_lo, y_hi = (e[:, None] for e in _pixel_edges(j0 + k, grid.y0_arcsec, p, dtype))
-    block = profiles.sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, flux=1.0, b=b, **kw)
-    padded = jnp.pad(image, core)
-    start_j = jnp.clip(j0 + core, 0, grid.ny + core)
-    start_i = jnp.clip(i0 + core, 0, grid.nx + core)
-    # where the clamp moved the block, it lies wholly in the padding and is cropped away
-    moved = (start_j != j0 + core) | (start_i != i0 + core)
-    current = jax.lax.dynamic_slice(padded, (start_j, start_i), (core, core))
-    block = jnp.where(moved, current, block.astype(dtype))
-    padded = jax.lax.dynamic_update_slice(padded, block, (start_j, start_i))
-    return padded[core:core + grid.ny, core:core + grid.nx]
+    (i0, j0), (x_lo, x_hi, y_lo, y_hi) = _core_block(grid, core, kw, image.dtype)
+    block = profiles.sersic_pixel_flux_exact(x_lo[:1], x_hi[:1], y_lo[:, :1], y_hi[:, :1],
+                                             flux=1.0, b=b, **kw)
+    return _set_core_block(image, grid, core, i0, j0, block)
 
 
 def _axis_distance(x, y, center1, center2, pa_rad):
@@ -263,6 +279,38 @@ def _axis_distance(x, y, center1, center2, pa_rad):
 def _exact_strip(image, grid: Grid, core: int, kw, b):
     """Replace by exact integrals the 3·max(nx, ny) + core² pixels whose centres lie nearest
     the major axis (≥ ~1 pixel on each side of it across the whole grid)."""
+    flat, edges = _strip_pixels(image, grid, core, kw)
+    vals = profiles.sersic_pixel_flux_exact(*edges, flux=1.0, b=b, **kw)
+    return image.ravel().at[flat].set(vals.astype(image.dtype)).reshape(image.shape)
+
+
+def _core_block(grid: Grid, core: int, kw, dtype):
+    """(i0, j0) of the core × core block around the Sérsic centre and its pixels' edges
+    (x_lo, x_hi, y_lo, y_hi), [core, core] each."""
+    p = grid.pixel_arcsec
+    i0 = _pixel_index(kw["center1"], grid.x0_arcsec, p) - core // 2
+    j0 = _pixel_index(kw["center2"], grid.y0_arcsec, p) - core // 2
+    k = jnp.arange(core)
+    x_lo, x_hi = (e[None, :] for e in _pixel_edges(i0 + k, grid.x0_arcsec, p, dtype))
+    y_lo, y_hi = (e[:, None] for e in _pixel_edges(j0 + k, grid.y0_arcsec, p, dtype))
+    return (i0, j0), [jnp.broadcast_to(e, (core, core)) for e in (x_lo, x_hi, y_lo, y_hi)]
+
+
+def _set_core_block(image, grid: Grid, core: int, i0, j0, block):
+    """`_exact_core`'s placing of the exact block (i0, j0: its pixel [0, 0])."""
+    padded = jnp.pad(image, core)
+    start_j = jnp.clip(j0 + core, 0, grid.ny + core)
+    start_i = jnp.clip(i0 + core, 0, grid.nx + core)
+    # where the clamp moved the block, it lies wholly in the padding and is cropped away
+    moved = (start_j != j0 + core) | (start_i != i0 + core)
+    current = jax.lax.dynamic_slice(padded, (start_j, start_i), (core, core))
+    block = jnp.where(moved, current, block.astype(image.dtype))
+    padded = jax.lax.dynamic_update_slice(padded, block, (start_j, start_i))
+    return padded[core:core + grid.ny, core:core + grid.nx]
+
+
+def _strip_pixels(image, grid: Grid, core: int, kw):
+    """`_exact_strip`'s pixels: their flat indices and edges (x_lo, x_hi, y_lo, y_hi)."""
     ny, nx = grid.shape
     count = min(nx * ny, 3 * max(nx, ny) + core * core)
     p = grid.pixel_arcsec
@@ -271,10 +319,45 @@ def _exact_strip(image, grid: Grid, core: int, kw, b):
     yc = jnp.asarray(grid.y_centers(), dtype)
     dist = _axis_distance(xc[None, :], yc[:, None], kw["center1"], kw["center2"], kw["pa_rad"])
     _, flat = jax.lax.top_k(-jax.lax.stop_gradient(dist).ravel(), count)
-    x_lo, x_hi = _pixel_edges(flat % nx, grid.x0_arcsec, p, dtype)
-    y_lo, y_hi = _pixel_edges(flat // nx, grid.y0_arcsec, p, dtype)
-    vals = profiles.sersic_pixel_flux_exact(x_lo, x_hi, y_lo, y_hi, flux=1.0, b=b, **kw)
-    return image.ravel().at[flat].set(vals.astype(dtype)).reshape(image.shape)
+    return flat, [*_pixel_edges(flat % nx, grid.x0_arcsec, p, dtype),
+                  *_pixel_edges(flat // nx, grid.y0_arcsec, p, dtype)]
+
+
+def _exact_on(images, grids, core: int, strips, kw, b):
+    """`_exact_strip` (strips[t]) or `_exact_core` of one Sérsic on each image of `images`
+    (on `grids`), its exact pixel integrals of every grid made by one kernel call."""
+    if core <= 0:
+        return list(images)
+    if len(images) == 1:    # as one grid always was
+        f = _exact_strip if strips[0] else _exact_core
+        return [f(images[0], grids[0], core, kw, b)]
+    where, edges = [], []
+    for img, g, strip in zip(images, grids, strips):
+        at, e = (_strip_pixels(img, g, core, kw) if strip else
+                 _core_block(g, core, kw, img.dtype))
+        where.append(at)
+        edges.append([v.ravel() for v in e])
+    sizes = [e[0].size for e in edges]
+    vals = profiles.sersic_pixel_flux_exact(*(jnp.concatenate(v) for v in zip(*edges)),
+                                            flux=1.0, b=b, **kw)
+    vals = jnp.split(vals, np.cumsum(sizes)[:-1].tolist())
+    out = []
+    for img, g, strip, at, v in zip(images, grids, strips, where, vals):
+        if strip:
+            out.append(img.ravel().at[at].set(v.astype(img.dtype)).reshape(img.shape))
+        else:
+            out.append(_set_core_block(img, g, core, *at, v.reshape(core, core)))
+    return out
+
+
+def _plain_sersic_images(kw, grids, order: int, core: int, strips, dtype):
+    """`_plain_sersic_image` on each grid of `grids` (strips: per grid): one compiled
+    profile and one exact-pixel kernel for all of them."""
+    b = profiles.sersic_b(kw["n"])
+    sums = _sample_sums(lambda x, y: sersic_unit_brightness(x, y, b=b, **kw), grids, order,
+                        dtype)
+    images = [s * _pixel_area(g) for s, g in zip(sums, grids)]
+    return _exact_on(images, grids, core, strips, kw, b)
 
 
 def _plain_sersic_image(kw, grid: Grid, order: int, core: int, strip: bool, dtype):
@@ -296,15 +379,17 @@ def sersic_image(s: Sersic, grid: Grid, *, order: int = 4, core: int = 5, strip:
 
 
 def disk_image(d: Disk, grid: Grid, *, order: int = 4, core: int = 5, strip: bool = False,
-               dtype=None):
-    """Unit-flux pixel integrals of a disk; exact core (or strip) only when it is a plain Sérsic."""
-    values = disk_image_values(d, grid, order=order, core=core, strip=strip, dtype=dtype)
+               dtype=None, modulation_mean=None):
+    """Unit-flux pixel integrals of a disk; exact core (or strip) only when it is a plain Sérsic.
+    modulation_mean: `disk_modulation_mean(d)` computed before, or None (computed here)."""
+    values = disk_image_values(d, grid, order=order, core=core, strip=strip, dtype=dtype,
+                               modulation_mean=modulation_mean)
     scale = disk_image_scale(d, grid)
     return values if scale == 1.0 else values * scale
 
 
 def disk_image_values(d: Disk, grid: Grid, *, order: int = 4, core: int = 5,
-                      strip: bool = False, dtype=None):
+                      strip: bool = False, dtype=None, modulation_mean=None):
     """`disk_image` / `disk_image_scale`. Kept apart for a program that takes the values as
     data (`model.hosts.UnlensedHosts`): XLA evaluates flux × (values × scale) as
     values × (flux × scale), so a held image multiplied by a flux would differ from
@@ -312,7 +397,7 @@ def disk_image_values(d: Disk, grid: Grid, *, order: int = 4, core: int = 5,
     dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
     if d.arms is None and d.texture is None:
         return _plain_sersic_image(_disk_kw(d), grid, order, core, strip, dtype)
-    mean = disk_modulation_mean(d)
+    mean = disk_modulation_mean(d) if modulation_mean is None else modulation_mean
     return _sample_sum(lambda x, y: disk_unit_brightness(d, x, y, mean), grid, order, dtype)
 
 
@@ -320,6 +405,33 @@ def disk_image_scale(d: Disk, grid: Grid) -> float:
     """disk_image = disk_image_values × this: the pixel area for a sampled (armed or
     textured) disk, else 1."""
     return 1.0 if d.arms is None and d.texture is None else _pixel_area(grid)
+
+
+def sersic_images(s: Sersic, grids, *, order: int = 4, core: int = 5, strips=None,
+                  dtype=None):
+    """`sersic_image` on each grid of `grids` (strips: per grid, default none), computed
+    together: one compiled profile and one exact-pixel kernel however many grids."""
+    dtype = dtype or jnp.result_type(s.re_arcsec)
+    grids = list(grids)
+    if not grids:
+        return []
+    strips = strips or [False] * len(grids)
+    return _plain_sersic_images(_sersic_kw(s), grids, order, core, strips, dtype)
+
+
+def disk_images_values(d: Disk, grids, *, order: int = 4, core: int = 5, strips=None,
+                       dtype=None, modulation_mean=None):
+    """`disk_image_values` on each grid of `grids` (strips: per grid, default none), computed
+    together: one compiled profile (and modulation mean) however many grids."""
+    dtype = dtype or jnp.result_type(d.sersic.re_arcsec)
+    grids = list(grids)
+    if not grids:
+        return []
+    strips = strips or [False] * len(grids)
+    if d.arms is None and d.texture is None:
+        return _plain_sersic_images(_disk_kw(d), grids, order, core, strips, dtype)
+    mean = disk_modulation_mean(d) if modulation_mean is None else modulation_mean
+    return _sample_sums(lambda x, y: disk_unit_brightness(d, x, y, mean), grids, order, dtype)
 
 
 def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
@@ -330,46 +442,13 @@ def clump_stamp_origin(clumps: Clumps, grid: Grid, stamp: int):
     return ic - stamp // 2, jc - stamp // 2
 
 
-def _sampled_stamps(clumps: Clumps, b, grid: Grid, stamp: int, order: int):
-    """Gauss–Legendre (order²) pixel integrals [N, stamp, stamp] of unit-flux clumps, the
-    stamps' origins (i0, j0) in `grid`, and their pixel centres (x [N, stamp], y [N, stamp]).
-
-    One broadcast evaluation over [clump, y offset, row, x offset, column]: one compiled
-    profile per stamp size, not one per sample.
-    """
-    i0, j0 = clump_stamp_origin(clumps, grid, stamp)
-    p = grid.pixel_arcsec
-    dtype = jnp.result_type(clumps.re_arcsec)
-    offs, wts = gauss_legendre_offsets(order)
-    o = jnp.asarray(offs * p, dtype)
-    w = jnp.asarray(wts, dtype)
-    k = jnp.arange(stamp)
-    xc = grid.x0_arcsec + (i0[:, None] + k).astype(dtype) * p
-    yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
-    x = xc[:, None, None, None, :] + o[None, None, None, :, None]
-    y = yc[:, None, :, None, None] + o[None, :, None, None, None]
-
-    def per_clump(a):
-        return a[:, None, None, None, None]
-
-    val = sersic_unit_brightness(
-        x, y, re_arcsec=per_clump(clumps.re_arcsec), n=per_clump(clumps.n),
-        q=per_clump(clumps.q), pa_rad=per_clump(clumps.pa_rad),
-        center1=per_clump(clumps.center_arcsec[:, 0]),
-        center2=per_clump(clumps.center_arcsec[:, 1]), b=per_clump(b))
-    wy = w[None, :, None, None, None]
-    wx = w[None, None, None, :, None]
-    stamps = jnp.sum(val * wy * wx, axis=(1, 3)) * (p * p)
-    return stamps, i0, j0, xc, yc
-
-
-def _exact_pixels(clumps: Clumps, xc, yc, stamp: int, core: int, strip: bool):
-    """Flat stamp indices [N, count] of the pixels to integrate exactly.
+def _exact_pixels(clumps: Clumps, xc, yc, stamp: int, core: int, strip: bool, n: int):
+    """Flat stamp indices [n, count] of the pixels to integrate exactly, for n clumps.
 
     A core × core block around the centre (which sits at stamp index stamp // 2), or,
-    with strip, the 3·stamp + core² pixels whose centres lie nearest the major axis.
+    with strip, the 3·stamp + core² pixels whose centres lie nearest the major axis
+    (clumps: those n, with the pixel centres xc, yc of their stamps; unused otherwise).
     """
-    n = clumps.count
     if strip:
         count = min(stamp * stamp, 3 * stamp + core * core)
         dist = _axis_distance(xc[:, None, :], yc[:, :, None], clumps.center_arcsec[:, 0, None, None],
@@ -419,51 +498,143 @@ def _exact_fluxes(clumps: Clumps, b, which, x_lo, x_hi, y_lo, y_hi):
     return out.reshape(-1)[:total]
 
 
+def _tile_side(sides) -> int:
+    """Side of the square tiles the stamps of these sides are cut into: their greatest common
+    divisor (every side of the ladder is a multiple of 4; one side alone: the stamp itself)."""
+    return math.gcd(*(int(s) for s in sides))
+
+
+def _sampled_tiles(clumps: Clumps, b, which, i0, j0, grids, starts, tile: int, order: int):
+    """Gauss–Legendre (order²) pixel integrals [T, tile, tile] of unit-flux clumps `which`
+    [T] on tiles of `tile` × `tile` pixels with pixel [0, 0] at (i0, j0) [T] of grids[g]
+    for the tiles from starts[g] on (static, increasing): one broadcast evaluation over [tile, y offset, row,
+    x offset, column] for every tile of every stamp size and grid, so that the profile is
+    compiled once however many stamp sizes and grids there are."""
+    dtype = jnp.result_type(clumps.re_arcsec)
+    offs, wts = gauss_legendre_offsets(order)
+    # each tile's grid, from the static ranges (not a [T] constant in the program)
+    target = jnp.sum(jnp.arange(which.shape[0])[:, None] >= jnp.asarray(starts[1:] or [
+        which.shape[0]], jnp.int32)[None, :], axis=1)
+    x0 = jnp.asarray([g.x0_arcsec for g in grids], dtype)[target]
+    y0 = jnp.asarray([g.y0_arcsec for g in grids], dtype)[target]
+    p = jnp.asarray([g.pixel_arcsec for g in grids], dtype)[target]
+    o = jnp.asarray(offs, dtype)[None, :] * p[:, None]                  # [T, order]
+    w = jnp.asarray(wts, dtype)
+    k = jnp.arange(tile)
+    xc = x0[:, None] + (i0[:, None] + k).astype(dtype) * p[:, None]    # [T, tile]
+    yc = y0[:, None] + (j0[:, None] + k).astype(dtype) * p[:, None]
+    x = xc[:, None, None, None, :] + o[:, None, None, :, None]
+    y = yc[:, None, :, None, None] + o[:, :, None, None, None]
+
+    def per_tile(a):
+        return a[which][:, None, None, None, None]
+
+    val = sersic_unit_brightness(
+        x, y, re_arcsec=per_tile(clumps.re_arcsec), n=per_tile(clumps.n),
+        q=per_tile(clumps.q), pa_rad=per_tile(clumps.pa_rad),
+        center1=per_tile(clumps.center_arcsec[:, 0]),
+        center2=per_tile(clumps.center_arcsec[:, 1]), b=per_tile(b))
+    wy = w[None, :, None, None, None]
+    wx = w[None, None, None, :, None]
+    return jnp.sum(val * wy * wx, axis=(1, 3)) * (p * p)[:, None, None]
+
+
+def _div(a, k: int):
+    """a // k for integers a ≥ 0 (truncating: no sign correction)."""
+    return jax.lax.div(a, jnp.asarray(k, a.dtype))
+
+
+def _rem(a, k: int):
+    """a % k for integers a ≥ 0."""
+    return jax.lax.rem(a, jnp.asarray(k, a.dtype))
+
+
 def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                       strip: bool = False):
-    """Unit-flux stamps of clumps on several grids: for each (grid, groups) of `targets`,
-    [(stamps [n, side, side], i0, j0, indices)] by stamp group (indices into `clumps`). A
-    group given as (side, indices, strip) overrides `strip`.
+    """Unit-flux stamps of clumps on several grids: for each (grid, groups) of `targets`, a
+    list [(tiles [T, t, t], i0 [T], j0 [T], clump index [T])] (empty without groups) of the
+    square tiles its stamp groups are cut into. A group is (side, indices into `clumps`) or
+    (side, indices, strip), which overrides `strip`; a clump of a group of side s has a stamp
+    of s × s pixels around its centre, cut into (s / t)² tiles of t × t (t: the greatest
+    common divisor of the sides, `_tile_side`), each with its own origin (i0, j0) in the grid.
 
     Pixels are Gauss–Legendre sampled (order²) except a block of core² pixels around the
     centre, integrated exactly. strip=True integrates exactly instead the 3·stamp + core²
     pixels nearest the major axis: a thin profile (minor axis below a pixel, such as a
     lensed clump) puts its light on that line, where sampling misses or overweights it.
-    b(n) and the exact integrals of every group on every grid are one computation each,
-    so the incomplete gamma function compiles twice however many stamp sizes there are.
+    b(n), the sampled tiles and the exact integrals of every group on every grid are one
+    computation each (`_sampled_tiles`, `_exact_fluxes`), so the profile and the incomplete
+    gamma function compile once however many stamp sizes and grids there are (issue 20: one
+    copy per stamp group was a fifth of the band render's program).
     """
+    out = [[] for _ in targets]
+    sides = [side for _, groups in targets for side, *_ in groups]
+    if not sides:
+        return out
+    tile = _tile_side(sides)
     dtype = jnp.result_type(clumps.re_arcsec)
     b = profiles.sersic_b(clumps.n)
-    parts, which, edges = [], [], []
+    which, ti0, tj0, ranges = [], [], [], []
+    exact_which, edges, at_tile, at_pixel = [], [], [], []
+    start = 0
     for t, (grid, groups) in enumerate(targets):
         p = grid.pixel_arcsec
-        for side, idx, *group_strip in groups:
+        first = start
+        # the pixel of every clump's centre, once per grid (`clump_stamp_origin`)
+        ic = _pixel_index(clumps.center_arcsec[:, 0], grid.x0_arcsec, p)
+        jc = _pixel_index(clumps.center_arcsec[:, 1], grid.y0_arcsec, p)
+        cols, rows = [], []
+        # one gather per grid, not per group: the groups' clumps' centre pixels
+        indices = [jnp.asarray(idx) for _, idx, *_ in groups]
+        offsets = np.cumsum([0] + [idx.shape[0] for idx in indices]).tolist()
+        ic, jc = (v[jnp.concatenate(indices)] for v in (ic, jc))
+        for g, (side, _, *group_strip) in enumerate(groups):
             thin = group_strip[0] if group_strip else strip
-            idx = jnp.asarray(idx)
-            sub = jax.tree_util.tree_map(lambda a: a[idx], clumps)
-            stamps, i0, j0, xc, yc = _sampled_stamps(sub, b[idx], grid, side, order)
+            idx = indices[g]
+            n, m = idx.shape[0], side // tile
+            lo, hi = offsets[g], offsets[g + 1]
+            i0, j0 = ic[lo:hi] - side // 2, jc[lo:hi] - side // 2
+            # the tiles of each stamp, row-major: tile (r, c) has its pixel [0, 0] at
+            # stamp pixel (r t, c t)
+            tr, tc = np.divmod(np.arange(m * m), m)
+            which.append(jnp.repeat(idx, m * m))
+            ti0.append((i0[:, None] + jnp.asarray(tc * tile, i0.dtype)).ravel())
+            tj0.append((j0[:, None] + jnp.asarray(tr * tile, j0.dtype)).ravel())
             c = min(core, side)
-            flat = _exact_pixels(sub, xc, yc, side, c, thin) if c > 0 else None
-            parts.append((t, stamps, i0, j0, idx, flat))
-            if flat is not None:
-                which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
-                cols = (i0[:, None] + flat % side).ravel()
-                rows = (j0[:, None] + flat // side).ravel()
-                edges.append(_pixel_edges(cols, grid.x0_arcsec, p, dtype)
-                             + _pixel_edges(rows, grid.y0_arcsec, p, dtype))
-    if which:
-        exact = _exact_fluxes(clumps, b, jnp.concatenate(which),
+            if c > 0:
+                xc = yc = None
+                if thin:
+                    k = jnp.arange(side)
+                    xc = grid.x0_arcsec + (i0[:, None] + k).astype(dtype) * p
+                    yc = grid.y0_arcsec + (j0[:, None] + k).astype(dtype) * p
+                sub = jax.tree_util.tree_map(lambda a: a[idx], clumps) if thin else None
+                flat = _exact_pixels(sub, xc, yc, side, c, thin, n)
+                # indices ≥ 0: truncating division (lax.div, lax.rem) is floor division here,
+                # without jnp's sign corrections
+                row, col = _div(flat, side), _rem(flat, side)
+                at_tile.append((start + jnp.arange(n)[:, None] * (m * m)
+                                + _div(row, tile) * m + _div(col, tile)).ravel())
+                at_pixel.append((_rem(row, tile) * tile + _rem(col, tile)).ravel())
+                exact_which.append(jnp.broadcast_to(idx[:, None], flat.shape).ravel())
+                cols.append((i0[:, None] + col).ravel())
+                rows.append((j0[:, None] + row).ravel())
+            start += n * m * m
+        if cols:    # the exact pixels' edges, once per grid
+            edges.append(_pixel_edges(jnp.concatenate(cols), grid.x0_arcsec, p, dtype)
+                         + _pixel_edges(jnp.concatenate(rows), grid.y0_arcsec, p, dtype))
+        ranges.append((first, start))
+    which, ti0, tj0 = (jnp.concatenate(v) for v in (which, ti0, tj0))
+    stamps = _sampled_tiles(clumps, b, which, ti0, tj0, [grid for grid, _ in targets],
+                            [lo for lo, _ in ranges], tile, order)
+    if exact_which:
+        exact = _exact_fluxes(clumps, b, jnp.concatenate(exact_which),
                               *(jnp.concatenate(v) for v in zip(*edges)))
-        exact = exact.astype(dtype)
-    out, start = [[] for _ in targets], 0
-    for t, stamps, i0, j0, idx, flat in parts:
-        if flat is not None:
-            n, side = stamps.shape[0], stamps.shape[1]
-            vals = exact[start:start + flat.size].reshape(flat.shape)
-            start += flat.size
-            rows = jnp.arange(n)[:, None]
-            stamps = stamps.reshape(n, -1).at[rows, flat].set(vals).reshape(n, side, side)
-        out[t].append((stamps, i0, j0, idx))
+        stamps = (stamps.reshape(start, tile * tile)
+                  .at[jnp.concatenate(at_tile), jnp.concatenate(at_pixel)]
+                  .set(exact.astype(dtype)).reshape(start, tile, tile))
+    for t, (lo, hi) in enumerate(ranges):
+        if hi > lo:
+            out[t].append((stamps[lo:hi], ti0[lo:hi], tj0[lo:hi], which[lo:hi]))
     return out
 
 

@@ -304,14 +304,18 @@ class SourceGridClumps(eqx.Module):
         if stamps is None:
             stamps = render.grouped_stamps(clumps, self.grid, self.groups(), order=self.order,
                                            core=self.core)
+        # sums over each clump's stamp, which comes in tiles (`render.grouped_stamps_on`)
+        lensed = jnp.zeros(out.shape, mu.dtype)
+        total = jnp.zeros(out.shape, mu.dtype)
         for stamps, i0, j0, idx in stamps:
             k = jnp.arange(stamps.shape[1])
             rows = j0[:, None, None] + k[None, :, None] + 1      # +1: the grid's border
             cols = i0[:, None, None] + k[None, None, :] + 1
             at = tiles.flat_index(self.tile_layout, self.slots, rows, cols)
-            mags = jnp.sum(stamps * mu[at], axis=(1, 2)) / jnp.sum(stamps, axis=(1, 2))
-            out = out.at[idx].set(mags)
-        return out
+            lensed = lensed.at[idx].add(jnp.sum(stamps * mu[at], axis=(1, 2)))
+            total = total.at[idx].add(jnp.sum(stamps, axis=(1, 2)))
+        traced = jnp.concatenate(self.index)
+        return out.at[traced].set(lensed[traced] / total[traced])
 
 
 class LinearisedClumps(eqx.Module):

@@ -43,22 +43,25 @@ class UnlensedHosts(Renderer):
                        if accuracy.thin_strip else (False, False) for lay in layouts)
         return cls(strips, accuracy.source_order, accuracy.exact_core)
 
-    def unit_light(self, source: Source, subgrids):
+    def unit_light(self, source: Source, subgrids, modulation_mean=None):
         """Per sub-grid of `subgrids` (in its order): the unit-flux images (bulge, disk) on it,
         None for a component the source lacks; the disk's as `render.disk_image_values`
-        (`subgrid_light` scales it, so that held values give the same bits)."""
-        return tuple(self._unit_images(source, g, k) for g, k in subgrids.items())
-
-    def _unit_images(self, source: Source, g, k: int):
-        strip_bulge, strip_disk = self.strips[k]
-        bulge = disk = None
+        (`subgrid_light` scales it, so that held values give the same bits).
+        modulation_mean: the disk's `render.disk_modulation_mean`, computed before (a
+        program of its own), or None (computed here)."""
+        # every sub-grid at once: one compiled profile and one exact-pixel kernel per
+        # component, not one per sub-grid
+        grids = list(subgrids)
+        strips = [self.strips[k] for k in subgrids.values()]
+        bulge = disk = [None] * len(grids)
         if source.bulge is not None:
-            bulge = render.sersic_image(source.bulge, g, order=self.order, core=self.core,
-                                        strip=strip_bulge)
+            bulge = render.sersic_images(source.bulge, grids, order=self.order, core=self.core,
+                                         strips=[s[0] for s in strips])
         if source.disk is not None:
-            disk = render.disk_image_values(source.disk, g, order=self.order, core=self.core,
-                                            strip=strip_disk)
-        return bulge, disk
+            disk = render.disk_images_values(source.disk, grids, order=self.order,
+                                             core=self.core, strips=[s[1] for s in strips],
+                                             modulation_mean=modulation_mean)
+        return tuple(zip(bulge, disk))
 
     def subgrid_light(self, source: Source, subgrids, units=None):
         """units: `unit_light(source, subgrids)` computed before (`HeldHosts`), or None."""
@@ -136,11 +139,12 @@ class LensPlaneHosts(Renderer):
     def _exact(self, brightness, kw, modulation=None):
         return brightness if self.core is None else self.core.apply(brightness, kw, modulation)
 
-    def unit_light(self, source: Source, subgrids=None):
+    def unit_light(self, source: Source, subgrids=None, modulation_mean=None):
         """Host light per unit flux at every traced pixel [M, C] (times the pixel area), one
         column per host component (bulge, then disk); None without a host. Each component is
         achromatic, so every band is a linear combination of these C ≤ 2 lens-plane images.
-        subgrids: unused (the light is the same for every sub-grid)."""
+        subgrids: unused (the light is the same for every sub-grid). modulation_mean: the
+        disk's `render.disk_modulation_mean`, computed before, or None (computed here)."""
         p = self.plane
         # host components vary slowly across a lens-plane pixel's footprint: one ray per
         # pixel (its centre) unless host_subsampling asks for all of them
@@ -154,7 +158,7 @@ class LensPlaneHosts(Renderer):
             units.append(self._exact(render.sersic_unit_brightness(h1, h2, **kw) @ hw, kw))
         if source.disk is not None:
             d = source.disk
-            u = render.disk_unit_brightness(d, h1, h2) @ hw
+            u = render.disk_unit_brightness(d, h1, h2, modulation_mean) @ hw
             if d.arms is None and d.texture is None:
                 u = self._exact(u, render._disk_kw(d))
             elif self.core is not None:
