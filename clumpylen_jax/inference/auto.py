@@ -54,7 +54,7 @@ from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
 from .catalog import fit_table
 from .likelihood import chi2_and_images, make_data
-from .params import Free, FitState, Parametrization, make_state, parametrize
+from .params import Free, FitState, Parametrization, make_state, parametrize, take_rows
 from .transforms import Transform
 from .uncertainty import Uncertainty, safe_inverse
 
@@ -954,16 +954,9 @@ def _apply_profile(table, prof, idx, band_names):
     return flag
 
 
-def _take(tree, idx):
-    """The rows idx of every array of tree, taken in numpy (no op-by-op gather per field)."""
-    rows = np.asarray(idx, int)
-    return jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[rows]) if eqx.is_array(a)
-                                  else a, tree)
-
-
 def _compact(state: FitState, idx) -> FitState:
     """The state with only the clump rows idx."""
-    return eqx.tree_at(lambda s: s.source.clumps, state, _take(state.source.clumps, idx))
+    return eqx.tree_at(lambda s: s.source.clumps, state, take_rows(state.source.clumps, idx))
 
 
 def _blends(unc: Uncertainty, labels, idx, band=0):
@@ -989,7 +982,7 @@ def _table(ctx, state, unc, idx, ok, spread, n_images, zeropoints_ab, prof=None)
             t[name] = np.zeros(0)
         return t
     re_lo, re_hi = ctx.re_bounds
-    cl = _take(state.source.clumps, idx)
+    cl = take_rows(state.source.clumps, idx)
     lo, hi = next(l.transform for l in ctx.param.leaves if l.path == "clumps.center_arcsec").lo, \
         next(l.transform for l in ctx.param.leaves if l.path == "clumps.center_arcsec").hi
     c = np.asarray(cl.center_arcsec)

@@ -81,6 +81,14 @@ def clump_rows(state: FitState, slots) -> FitState:
     return eqx.tree_at(lambda s: s.source.clumps, state, rows)
 
 
+def take_rows(tree, idx):
+    """The rows idx (int, concrete) of every array of tree, taken in numpy outside a trace
+    (no op-by-op gather compiled per field)."""
+    rows = np.asarray(idx, int)
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[rows]) if eqx.is_array(a)
+                                  else a, tree)
+
+
 HOST_PART, CLUMP_PART = "host", "clumps"
 _CLUMP_LEAVES = ("clumps.", "mass_msun", "age_myr")
 

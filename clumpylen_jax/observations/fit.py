@@ -41,7 +41,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..inference.likelihood import chi2_and_images, make_data
 from ..inference.optimize import fit_map
-from ..inference.params import Free, make_state, parametrize
+from ..inference.params import Free, make_state, parametrize, take_rows
 from ..inference.transforms import IDENTITY, LOG, Transform
 from ..inference.uncertainty import fisher_uncertainty
 from ..model import Accuracy, Band, build_model
@@ -209,9 +209,7 @@ def _padded(state, n_rows: int):
     """The state with its clumps padded to n_rows by copies of the first row with zero flux
     (dark: the same light)."""
     cl = state.source.clumps
-    take = np.r_[np.arange(cl.count), np.zeros(n_rows - cl.count, int)]
-    rows = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[take]) if eqx.is_array(a)
-                                  else a, cl)
+    rows = take_rows(cl, np.r_[np.arange(cl.count), np.zeros(n_rows - cl.count, int)])
     flux = np.asarray(rows.flux).copy()
     flux[cl.count:] = 0.0
     return eqx.tree_at(lambda s: s.source.clumps, state,
