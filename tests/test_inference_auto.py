@@ -78,6 +78,28 @@ def test_candidates_from_residual_peaks():
     assert np.allclose(cand.beta_arcsec[0], [g.x_centers()[12], g.y_centers()[10]])
 
 
+def test_candidates_in_bands_of_two_pixel_scales():
+    """NIRCam SW and LW fitted together (pixels 1 and 2 × PIX, images of different shapes):
+    the peaks are found in the finer band and each band's flux measured on its own grid
+    (this crashed on an aperture of the finer grid applied to the coarser image)."""
+    from clumpylen_jax.inference.seeding import find_candidates
+    fine, coarse = Grid.covering(*FIELD, PIX), Grid.covering(*FIELD, 2 * PIX)
+    grid_model = auto._GridsOnly([fine, coarse])
+    rng = np.random.default_rng(1)
+    sigma = 0.02
+    pix = [(10, 12), (26, 30)]
+    img = _blobs(pix, [4.0, 2.0], shape=fine.shape) + rng.normal(0, sigma, fine.shape)
+    img2 = _blobs([(r / 2 - 0.25, c / 2 - 0.25) for r, c in pix], [3.0, 1.5], sigma=0.7,
+                  shape=coarse.shape) + rng.normal(0, sigma, coarse.shape)
+    assert img.shape != img2.shape
+    cand = find_candidates(grid_model, [img, img2], [np.full(img.shape, sigma**2),
+                                                    np.full(img2.shape, sigma**2)],
+                           [np.ones(img.shape), np.ones(img2.shape)],
+                           psf_sigma_pix=np.array([1.2, 0.7]), threshold_snr=5.0, max_candidates=5)
+    assert [tuple(p) for p in cand.theta_pix] == pix
+    np.testing.assert_allclose(cand.flux / np.array([[4.0, 3.0], [2.0, 1.5]]), 1.0, atol=0.35)
+
+
 def test_psf_sigma_is_the_cores_not_the_wings():
     """The seeding's PSF σ (matched filter, size deconvolution) is the core's: FWHM / 2.3548.
     A Gaussian gives its σ (⊕ the pixel's 1/12); a Gaussian core with 10 % of the flux in a

@@ -309,10 +309,6 @@ def _mock_scene(tmp_path, seed=0):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason='rerun 2026-11-25 (665 s): the joint LM stage stops at 200 steps NOT converged '
-                   '(honest flag): the host Sersic n runs to its lower bound 0.3 (true 1.0; q 0.37 vs 0.45, '
-                   'R_e 0.232+-0.009 vs 0.2) and creeps along that flat direction; chi2/dof 0.98 and 1.07 '
-                   'per band, 2 clumps kept. The fitter, not the test, is what is wrong (issue 17 open)', strict=True)
 def test_mock_mjy_sr_rotated_wcs_two_scales_fitted_back_with_honest_pulls(tmp_path):
     import json
 

@@ -188,14 +188,14 @@ def _aperture(shape, row, col, radius):
     return (yy - row) ** 2 + (xx - col) ** 2 <= radius**2, yy - row, xx - col
 
 
-def measure_candidate(residuals, masks, row, col, psf_sigma_pix, ref: int, pixel_arcsec):
-    """Aperture flux per band, R_e (arcsec, image plane), q and PA of a residual peak."""
-    ap, dy, dx = _aperture(residuals[ref].shape, row, col, APERTURE_PIXELS)
-    flux = np.array([float(np.sum(np.where(ap & (m > 0), r, 0.0)))
-                     for r, m in zip(residuals, masks)])
-    mom = _moments(np.where(ap, residuals[ref], 0.0), dx, dy)
+def measure_candidate(residual, row, col, psf_sigma_pix, pixel_arcsec):
+    """R_e (arcsec, image plane), q and PA of a residual peak at (row, col) of `residual`
+    (the reference band's image: the sizes come from its own pixels, whatever the other
+    bands' grids; their fluxes are measured on each band's grid by `find_candidates`)."""
+    ap, dy, dx = _aperture(residual.shape, row, col, APERTURE_PIXELS)
+    mom = _moments(np.where(ap, residual, 0.0), dx, dy)
     if mom is None:
-        return flux, MIN_RE_PIXELS * pixel_arcsec, 1.0, 0.0
+        return MIN_RE_PIXELS * pixel_arcsec, 1.0, 0.0
     _, _, s_maj, s_min, pa = mom
     intr_maj = np.sqrt(max(s_maj**2 - psf_sigma_pix**2, 0.0))
     intr_min = np.sqrt(max(s_min**2 - psf_sigma_pix**2, 0.0))
@@ -203,7 +203,7 @@ def measure_candidate(residuals, masks, row, col, psf_sigma_pix, ref: int, pixel
     # an unresolved peak starts at a third of a pixel: a much smaller start can fall
     # between the sample points of a coarse renderer, with no gradient to grow back
     re = max(GAUSS_RE_PER_SIGMA * intr_maj, MIN_RE_PIXELS) * pixel_arcsec
-    return flux, re, q, pa
+    return re, q, pa
 
 
 def merge_images(beta, det, snr, merge_pixels: float, pixel_arcsec: float):
@@ -255,8 +255,8 @@ def find_candidates(scene_model, residuals, variances, masks, *, lens=None, psf_
             scale = g.pixel_arcsec / scene_model.layouts[k].grid.pixel_arcsec
             ap, _, _ = _aperture(residuals[k].shape, rk, ck, max(APERTURE_PIXELS * scale, 1.5))
             flux[k] = float(np.sum(np.where(ap & (masks[k] > 0), residuals[k], 0.0)))
-        _, re_img, q, pa = measure_candidate(residuals, masks, r, c, float(psf_sigma_pix[ref]),
-                                             ref, g.pixel_arcsec)
+        re_img, q, pa = measure_candidate(np.asarray(residuals[ref]), r, c,
+                                          float(psf_sigma_pix[ref]), g.pixel_arcsec)
         if lens is not None:
             q, pa = source_shape(q, pa, jac[r, c])
         rows.append((b1[r, c], b2[r, c], det[r, c], flux, re_img, q, pa, v, r, c))
