@@ -496,6 +496,44 @@ def test_final_shape_starts_round_clumps_from_their_shape_trials():
     assert np.all(np.isfinite(u3))
 
 
+def test_host_moves_swap_roles_with_a_broader_clump_or_reseed_the_host():
+    """`auto._host_moves`: a host that sits compact on a clump-like knot (R_e 0.03") beside a
+    broader clump (0.1") holding the diffuse light: the swap gives the host that clump's
+    centre and flux with R_e max(0.1", the moments' R_e), and the clump the host's centre,
+    flux and R_e; a clump smaller than the host gets no swap; the reseed puts the host back
+    on the data's moments and the old host into the first free slot. No fit."""
+    img = _blobs(np.array([[10, 12], [25, 30]]), [5.0, 3.0]) + 0.5
+    opts = AutoOptions(max_clumps=4, n_starts=4, re_max_arcsec=4 * PIX).validate()
+    ctx, u0 = auto._setup(make_model, [img], [np.full(img.shape, 0.01)], None, None, None, opts)
+    st = ctx.param.state(jnp.asarray(u0))
+    knot = Sersic(jnp.array([7.0]), jnp.asarray(0.03), st.source.bulge.n, st.source.bulge.q,
+                  st.source.bulge.pa_rad, jnp.array([0.2, -0.15]))
+    u = np.asarray(ctx.param.initial(eqx.tree_at(lambda s: s.source.bulge, st, knot)))
+    u = auto._set_clump(ctx, u, 0, [0.0, 0.0], [9.0], 0.1)
+    u = auto._set_clump(ctx, u, 1, [-0.2, 0.1], [2.0], 0.02)
+    active = np.array([1.0, 1.0, 0.0, 0.0])
+    moves = auto._host_moves(ctx, u, u0, active)
+    assert [(m[0], m[1]) for m in moves] == [("swap", 0), ("reseed", 2)]
+    re0 = float(st.source.bulge.re_arcsec)
+    swap = ctx.param.state(jnp.asarray(moves[0][2])).source
+    assert np.allclose(swap.bulge.center_arcsec, [0.0, 0.0])
+    assert float(swap.bulge.flux[0]) == pytest.approx(9.0)
+    assert float(swap.bulge.re_arcsec) == pytest.approx(max(0.1, re0))
+    assert np.allclose(swap.clumps.center_arcsec[0], [0.2, -0.15])
+    assert float(swap.clumps.flux[0, 0]) == pytest.approx(7.0)
+    assert float(swap.clumps.re_arcsec[0]) == pytest.approx(0.03)
+    assert moves[0][3].tolist() == active.tolist() and moves[0][4][0] == 0
+    reseed = ctx.param.state(jnp.asarray(moves[1][2])).source
+    assert np.allclose(reseed.bulge.center_arcsec, st.source.bulge.center_arcsec)
+    assert float(reseed.bulge.re_arcsec) == pytest.approx(re0)
+    assert np.allclose(reseed.clumps.center_arcsec[2], [0.2, -0.15])
+    assert moves[1][3].tolist() == [1.0, 1.0, 1.0, 0.0] and moves[1][4][0] == 2
+    assert all(np.all(np.isfinite(m[2])) for m in moves)
+    # no host fitted (host = false): nothing to swap
+    ctx.opts = dataclasses.replace(ctx.opts, host=False)
+    assert auto._host_moves(ctx, u, u0, active) == []
+
+
 @pytest.mark.slow
 def test_without_errors_the_same_clumps_and_no_table():
     """AutoOptions(errors=False) (what `clumpylen fit` asks for): the same optimum, bit for

@@ -628,6 +628,96 @@ def _prune(ctx: _Ctx, u, lnl, active, steps):
     return lnl, active
 
 
+def _host_moves(ctx: _Ctx, u, u0, active):
+    """Trials that give the host and a clump each other's roles: [(kind, slot, u start, active
+    after, local slots)]. With one Sérsic host (not `host_start`'s components).
+
+    Why: fitted alone first, the host takes whatever light gains most χ², and a compact
+    clump of about the host's flux gains more than the host's own diffuse light. It then sits
+    on that clump with the clump's size, and the counting gives the real host's light to a
+    clump at the largest R_e and to its neighbours (a mock: host R_e 0.05″ on the brightest
+    clump, truth 0.26″; the other clumps' magnitudes 2–4σ too bright). No local step undoes
+    that: it takes the host across the image.
+    - ("swap", i): clump i is broader than the host: the host starts at clump i's centre
+      and flux with R_e max(R_e,i, the moments' R_e) and the moments' n, q, PA; clump i
+      at the host's centre, flux and R_e (clipped into the clumps' bounds). The same
+      parameters: accepted when ln L rises.
+    - ("reseed", slot): the host from the data's moments again (flux: the moments' less the
+      clumps'), the old host a new clump in a free slot: judged as an added clump."""
+    if ctx.opts.host is False or ctx.param.state(jnp.asarray(u)).source.disk is not None:
+        return []
+    st, st0 = ctx.param.state(jnp.asarray(u)), ctx.param.state(jnp.asarray(u0))
+    host, host0, cl = st.source.bulge, st0.source.bulge, st.source.clumps
+    if host is None or host0 is None:
+        return []
+    re_host, re0 = float(host.re_arcsec), float(host0.re_arcsec)
+    if ctx.opts.host_re_range_arcsec is not None:
+        lo, hi = ctx.opts.host_re_range_arcsec
+        re0 = float(np.clip(re0, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo)))
+
+    def with_host(centre, flux, re):
+        new = eqx.tree_at(lambda h: (h.center_arcsec, h.flux, h.re_arcsec, h.n, h.q, h.pa_rad),
+                          host, (jnp.asarray(centre, float), jnp.asarray(flux, float),
+                                 jnp.asarray(re, float), host0.n, host0.q, host0.pa_rad))
+        return np.asarray(ctx.param.initial(eqx.tree_at(lambda x: x.source.bulge, st, new)))
+
+    moves = []
+    centres, fluxes, res = (np.asarray(cl.center_arcsec), np.asarray(cl.flux),
+                            np.asarray(cl.re_arcsec))
+    for i in np.nonzero(active > 0)[0]:
+        if res[i] > re_host:
+            v = with_host(centres[i], np.clip(fluxes[i], 1e-12, None), max(res[i], re0))
+            v = _set_clump(ctx, v, int(i), np.asarray(host.center_arcsec), np.asarray(host.flux),
+                           re_host)
+            moves.append(("swap", int(i), v, active.copy(),
+                          _local_slots(ctx, v, active, int(i), np.asarray(host.center_arcsec))))
+    free = np.nonzero(active == 0)[0]
+    if free.size:
+        j = int(free[0])
+        rest = np.asarray(host0.flux) - (fluxes * active[:, None]).sum(0)
+        v = with_host(host0.center_arcsec, np.maximum(rest, 0.1 * np.asarray(host0.flux)), re0)
+        v = _set_clump(ctx, v, j, np.asarray(host.center_arcsec), np.asarray(host.flux), re_host)
+        act = active.copy()
+        act[j] = 1.0
+        moves.append(("reseed", j, v, act, _local_slots(ctx, v, act, j, np.asarray(host.center_arcsec))))
+    # the broadest clumps first: n_starts moves are solved (one batch, no compile)
+    return sorted(moves, key=lambda m: -res[m[1]] if m[0] == "swap" else np.inf)[:ctx.opts.n_starts]
+
+
+def _rehost(ctx: _Ctx, u, u0, lnl, active, n_images, steps):
+    """The host moves (`_host_moves`), the best accepted one made, then pruning again (a clump
+    that held the host's light is redundant once the host has it). Each move is a step."""
+    moves = _host_moves(ctx, u, u0, active)
+    if not moves:
+        return u, lnl, active, n_images
+    us, lnls, oks, n = _fit_local(ctx, np.stack([m[2] for m in moves]), [m[4] for m in moves],
+                                  np.stack([m[3] for m in moves]))
+    judged = []
+    for (kind, _, _, act, _), v in zip(moves, lnls):
+        if kind == "swap":
+            judged.append((float(-2.0 * (v - lnl)), bool(v > lnl)))
+        else:
+            judged.append(_criterion(ctx.opts, float(v - lnl), ctx.k_clump, ctx.n_pix))
+    ok = [b for b in range(len(moves)) if judged[b][1]]
+    best = max(ok, key=lambda b: lnls[b]) if ok else -1
+    for b, (kind, slot, _, act, _) in enumerate(moves):
+        made = b == best
+        after_act, after_lnl = (act, lnls[b]) if made else (active, lnl)
+        steps.append(dict(step=len(steps), action=kind if made else f"reject_{kind}", slot=slot,
+                          n_clumps=int(after_act.sum()), delta_lnL=float(lnls[b] - lnl),
+                          criterion=judged[b][0], accepted=judged[b][1], made=made,
+                          lnL=float(after_lnl), chi2_dof=_chi2_dof(ctx, after_lnl, after_act.sum()),
+                          converged=bool(oks[b]), n_steps=int(n[b])))
+    if best < 0:
+        return u, lnl, active, n_images
+    u, lnl, active = us[best], float(lnls[best]), moves[best][3]
+    if moves[best][0] == "reseed":   # the old host's light: seen at least once
+        n_images = n_images.copy()
+        n_images[moves[best][1]] = 1
+    lnl, active = _prune(ctx, u, lnl, active, steps)
+    return u, lnl, active, n_images
+
+
 def merged_clump(beta, flux, re, n: float, q_range=CLUMP_Q_RANGE):
     """One clump with the light of several round ones: (β [2], flux [B], R_e, q, PA).
 
@@ -1034,6 +1124,7 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     u, lnl = _fit_host(ctx, u0, steps)
     u, lnl, active, n_images = _count(ctx, u, lnl, steps)
     lnl, active = _prune(ctx, u, lnl, active, steps)
+    u, lnl, active, n_images = _rehost(ctx, u, u0, lnl, active, n_images, steps)
     if opts.merge:
         u, lnl, active, n_images, shape_trials = _refine(ctx, u, lnl, active, n_images, steps)
         if opts.final_shape and ctx.shape_index is not None:

@@ -174,9 +174,14 @@ def matched_filter(snr_map, sigma_pix=1.0):
 
 def find_peaks_snr(snr_map, threshold: float, max_peaks: int, box_pix: int = 3):
     """Peaks (row, col, value) of a S/N map above threshold, brightest first (photutils)."""
+    import warnings
+
     from photutils.detection import find_peaks
-    tab = find_peaks(np.asarray(snr_map, float), threshold, box_size=box_pix, n_peaks=max_peaks,
-                     border_width=1)
+    from photutils.utils.exceptions import NoDetectionsWarning
+    with warnings.catch_warnings():   # no peak is an answer here (the counting stops), not news
+        warnings.simplefilter("ignore", NoDetectionsWarning)
+        tab = find_peaks(np.asarray(snr_map, float), threshold, box_size=box_pix,
+                         n_peaks=max_peaks, border_width=1)
     if tab is None or len(tab) == 0:
         return np.zeros((0, 3))
     out = np.c_[np.asarray(tab["y_peak"]), np.asarray(tab["x_peak"]), np.asarray(tab["peak_value"])]
