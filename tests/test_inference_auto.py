@@ -288,19 +288,25 @@ def _rows_case():
 
 
 def _local_normal_matches(model, data, param, u, active, slots, idx, n_host, chunks):
-    """`capacity._local_normal` against one blockwise Jacobian of every slot with the mask."""
+    """`capacity._local_normal` against one blockwise Jacobian of every slot with the mask,
+    every column pushed through the model and with the per-band linear ones (fluxes,
+    background) made by groups (`kinds`)."""
     from clumpylen_jax.inference import capacity
     from clumpylen_jax.inference.lm import blockwise, held_residuals
-    from clumpylen_jax.inference.params import part_blocks
+    from clumpylen_jax.inference.params import entry_kinds, part_blocks
     r0, J0 = (np.asarray(a) for a in jax.jit(blockwise(
         held_residuals(model, data, param, active=active), part_blocks(param)))(u))
     real = np.asarray(idx[idx < param.size])
     J = J0[:, real]
     held = capacity.held_light(model, param.state(u), slots, active)
     v = u.at[idx].get(mode="fill", fill_value=0.0)
-    for chunk in chunks:
+    per_row = (idx.size - n_host) // slots.size
+    kinds = (entry_kinds(param, np.asarray(idx[:n_host])),
+             entry_kinds(param, np.asarray(idx[n_host:n_host + per_row])))
+    assert any(k[0] is not None for k in kinds[1])
+    for chunk, kind in [(c, k) for c in chunks for k in (None, kinds)]:
         normal, residual = capacity._local_normal(model, data, param, u, idx, slots, active,
-                                                  held, n_host, chunk)
+                                                  held, n_host, chunk, kind)
         r, H, g = (np.asarray(a) for a in jax.jit(normal)(v))
         assert np.abs(np.asarray(jax.jit(residual)(v)) - r).max() <= 1e-12 * np.abs(r).max()
         n = real.size

@@ -54,7 +54,8 @@ from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
 from .catalog import fit_table
 from .likelihood import chi2_and_images, make_data
-from .params import Free, FitState, Parametrization, make_state, parametrize, take_rows
+from .params import (Free, FitState, Parametrization, entry_kinds, make_state, parametrize,
+                     take_rows)
 from .transforms import Transform
 from .uncertainty import Uncertainty, safe_inverse
 
@@ -479,12 +480,21 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None, held_sets=No
     out, lnl, ok, steps = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
         jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), ctx.opts.rtol, _step_limits(ctx, m),
-        int(ctx.host_index.size), LOCAL_SLOTS)
+        int(ctx.host_index.size), LOCAL_SLOTS, _layout_kinds(ctx))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),
              np.asarray(steps)[:m])
     return np.asarray(out)[:m], lnl[:m], np.asarray(ok)[:m], np.asarray(steps)[:m]
+
+
+def _layout_kinds(ctx: _Ctx):
+    """(kinds of the host entries, kinds of a row's entries) of `_solve_layout`
+    (`params.entry_kinds`; every row alike: flux, β, R_e, and q, PA where shape moves are
+    on), for the per-band linear columns of `capacity._local_normal`."""
+    row = ctx.slot_index[0] if ctx.shape_index is None else np.r_[ctx.slot_index[0],
+                                                                  ctx.shape_index[0]]
+    return entry_kinds(ctx.param, ctx.host_index), entry_kinds(ctx.param, row)
 
 
 def _local_slots(ctx: _Ctx, u, active, new_slot: int, beta):
