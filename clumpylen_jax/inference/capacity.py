@@ -37,7 +37,8 @@ from ..convolve import fft_shape
 from ..psf import PSF, fwhm_arcsec
 from ..source import Source
 from .likelihood import predicted_images, whitened_residuals
-from .lm import blockwise, held_residuals, levenberg_marquardt
+from .lm import (band_of_residuals, blockwise, columns_by_kind, held_residuals, linear_groups,
+                 levenberg_marquardt)
 from .params import clump_rows, masked_clumps, only_gradient, part_blocks
 from .uncertainty import fisher_for_data
 
@@ -106,61 +107,6 @@ def _tangents(f, v, first, width):
     return jax.vmap(lambda t: jax.jvp(f, (v,), (t,)), out_axes=(None, 0))(basis)
 
 
-def _band_of_residuals(data) -> np.ndarray:
-    """Band of each entry of `whitened_residuals` (its pixels, then its diffuse coefficients'
-    entries, band after band): static."""
-    sizes = [int(np.prod(d.shape)) + k for d, k in zip(data.images, data.n_diffuse)]
-    return np.repeat(np.arange(len(sizes)), sizes)
-
-
-def _columns(f, v, first, kinds, groups, bands):
-    """((residuals, aux) = f(v), the residuals' derivatives [len(kinds), n_r] along the entries
-    first … first + len(kinds) − 1 of v) as `_tangents`, where kinds[p] = (path, band) marks
-    entry p per-band linear (`params.entry_kinds`; (None, −1): any other). f(w, only):
-    (residuals, aux), every leaf but `only` behind stop_gradient when only is a path.
-
-    The other entries are pushed through the model one tangent each (`_tangents`). A
-    per-band linear entry moves one band's image, by its own unit image: pushed with the
-    others it costs a tangent through every band's profile and PSF convolution, zeros but
-    for one band. Instead each group (groups: tuples of positions p whose kinds share a
-    path, one band each: a component's fluxes, or one clump row's) is one derivative along
-    the sum of its entries with every other leaf held (`params.only_gradient`: no profile
-    tangent, one convolution per band), split by band (bands: `_band_of_residuals`) into
-    its entries' columns: the same columns to rounding, fewer model evaluations (a S1063
-    counting step: 15 tangents through host and clumps instead of 30)."""
-    geo = [p for p, (path, _) in enumerate(kinds) if path is None]
-    cols = {}
-    primal = None
-    if geo:
-        basis = jax.nn.one_hot(first + jnp.asarray(geo), v.size, dtype=v.dtype)
-        primal, (t, _) = jax.vmap(lambda b: jax.jvp(lambda w: f(w, None), (v,), (b,)),
-                                  out_axes=(None, 0))(basis)
-        cols.update({p: t[k] for k, p in enumerate(geo)})
-    bands = jnp.asarray(bands)
-    for group in groups:
-        path = kinds[group[0]][0]
-        t_vec = jnp.sum(jax.nn.one_hot(first + jnp.asarray(group), v.size, dtype=v.dtype), 0)
-        out, (t, _) = jax.jvp(lambda w, path=path: f(w, path), (v,), (t_vec,))
-        primal = out if primal is None else primal
-        for p in group:
-            cols[p] = jnp.where(bands == kinds[p][1], t, 0.0)
-    return primal, jnp.stack([cols[p] for p in range(len(kinds))])
-
-
-def _groups(kinds, per_row: int = 0):
-    """Positions of the per-band linear entries of `kinds` grouped by path (and by row of
-    per_row entries where per_row > 0): tuples, each band at most once (else a group's
-    derivative would mix two columns of one band)."""
-    out = {}
-    for p, (path, band) in enumerate(kinds):
-        if path is not None:
-            out.setdefault((path, p // per_row if per_row else 0), []).append(p)
-    groups = tuple(tuple(g) for g in out.values())
-    for g in groups:
-        assert len({kinds[p][1] for p in g}) == len(g), "one entry per band in a linear group"
-    return groups
-
-
 def _normal_by_blocks(r, T_host, T_chunks, n_chunks):
     """(JᵀJ, Jᵀr) of Jᵀ = [T_host; T_chunks[0]; T_chunks[1]; …] (rows: a column's derivative)
     from its blocks, the chunks from n_chunks on (zero columns) skipped: [K, K], [K] with
@@ -199,8 +145,8 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
     columns are never pushed through the model, and their blocks of JᵀJ never formed.
     fixed: the light of the active clumps outside slots (`held_light`).
     kinds: None, or (host kinds [n_host], kinds of a row's entries [width / chunk]) as
-    `params.entry_kinds` gives them: the per-band linear entries' columns are then made
-    by groups (`_columns`)."""
+    `params.entry_kinds` gives them: the per-band linear entries' columns (fluxes,
+    background) are then made by groups (`lm.columns_by_kind`; a row's fluxes one group)."""
     cap = active.shape[0]
     n_c = slots.size // chunk
     width = (idx.size - n_host) // n_c
@@ -230,18 +176,20 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
     if kinds is not None:
         host_kinds, row_kinds = kinds
         chunk_kinds = tuple(row_kinds) * chunk
-        bands = _band_of_residuals(data)
-        host_groups, chunk_groups = _groups(host_kinds), _groups(chunk_kinds, len(row_kinds))
+        bands = band_of_residuals(data)
+        host_groups = linear_groups(host_kinds)
+        chunk_groups = linear_groups(chunk_kinds, len(row_kinds))
 
         def chunk_tangents(c, v):
-            (_, l_c), t_c = _columns(chunk_residuals(c), v, n_host + c * width, chunk_kinds,
-                                     chunk_groups, bands)
+            (_, l_c), t_c = columns_by_kind(chunk_residuals(c), v,
+                                            n_host + c * width + jnp.arange(width), chunk_kinds,
+                                            chunk_groups, bands)
             return l_c, t_c
 
         def host_tangents(light, v):
             f = host_residuals(light)
-            (r, _), t = _columns(lambda w, only: (f(w, only), ()), v, 0, host_kinds,
-                                 host_groups, bands)
+            (r, _), t = columns_by_kind(lambda w, only: (f(w, only), ()), v, np.arange(n_host),
+                                        host_kinds, host_groups, bands)
             return r, t
     else:
         def chunk_tangents(c, v):

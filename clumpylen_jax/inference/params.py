@@ -111,7 +111,7 @@ def only_gradient(state: FitState, path: str) -> FitState:
     """The state with every leaf behind stop_gradient except the one at `path` (e.g.
     "clumps.flux"): a forward-mode derivative along that leaf then carries symbolic-zero
     tangents through everything else, e.g. the profile of a component whose flux moves
-    (`capacity._columns`)."""
+    (`lm.columns_by_kind`)."""
     get = _getter(path)
     stopped = jax.tree_util.tree_map(jax.lax.stop_gradient, state)
     return eqx.tree_at(get, stopped, get(state))
@@ -123,15 +123,18 @@ PER_BAND_LINEAR = ("bulge.flux", "disk.sersic.flux", "clumps.flux", "background"
 
 
 def entry_kinds(param: "Parametrization", entries) -> tuple:
-    """Per entry of u in `entries`: (leaf path, band) where the leaf is in PER_BAND_LINEAR,
-    else (None, -1): static, for `capacity._local_normal`."""
+    """Per entry of u in `entries`: (leaf path, band, row) where the leaf is in
+    PER_BAND_LINEAR (row: the clump's for clumps.flux [N, B], else 0), else (None, −1, 0);
+    an entry outside u (padding) is (None, −1, 0). Static, for `lm.columns_by_kind`."""
     where, start = {}, 0
     for leaf in param.leaves:
         for k, i in enumerate(leaf.index):
-            band = int(np.unravel_index(i, leaf.shape)[-1]) if leaf.shape else 0
-            where[start + k] = (leaf.path, band) if leaf.path in PER_BAND_LINEAR else (None, -1)
+            at = np.unravel_index(i, leaf.shape) if leaf.shape else (0,)
+            row = int(at[0]) if len(at) > 1 else 0
+            where[start + k] = ((leaf.path, int(at[-1]), row) if leaf.path in PER_BAND_LINEAR
+                                else (None, -1, 0))
         start += leaf.size
-    return tuple(where.get(int(e), (None, -1)) for e in np.asarray(entries).ravel())
+    return tuple(where.get(int(e), (None, -1, 0)) for e in np.asarray(entries).ravel())
 
 
 def part_blocks(param: "Parametrization"):
