@@ -578,8 +578,9 @@ def _fit_host(ctx: _Ctx, u0, steps):
         us, lnl = u[None], np.array([_log_likelihood(ctx, u, active[0])])
         ok, n = np.array([True]), np.array([0])
     else:
-        slots = [list(range(min(LOCAL_SLOTS, ctx.cap)))] * len(starts)
-        us, lnl, ok, n = _fit_local(ctx, np.stack(starts), slots, active)
+        # no clump rows: every slot is dark, its columns would be zeros pushed through the
+        # clumps' rendering at every step (`capacity._local_normal` skips padding rows)
+        us, lnl, ok, n = _fit_local(ctx, np.stack(starts), [[]] * len(starts), active)
     b = int(np.argmax(lnl))
     steps.append(dict(step=0, action="host", slot=-1, n_clumps=0, delta_lnL=np.nan,
                       criterion=np.nan, accepted=True, lnL=float(lnl[b]),
