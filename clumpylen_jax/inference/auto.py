@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import threading
 import time
 from typing import Optional
 
@@ -559,17 +558,6 @@ def _candidates(ctx: _Ctx, u, active):
                                    max_candidates=max(ctx.opts.n_starts, 1))
 
 
-def _compile_render_aside(ctx: _Ctx, u0):
-    """A thread that compiles (and runs once) the render program (`_rendered`: the counting's
-    residuals, first needed after the host fit) while the host fit traces and compiles the
-    local solves: XLA compiles a program on one core, the other is idle meanwhile. Join it
-    before that program's first use (a second caller meanwhile would compile it again)."""
-    t = threading.Thread(target=_rendered, args=(ctx, np.asarray(u0), np.zeros(ctx.cap)),
-                         daemon=True)
-    t.start()
-    return t
-
-
 def _fit_host(ctx: _Ctx, u0, steps):
     """Host and background alone (no clump active), from the moments and rescaled sizes."""
     re_scale = np.array([1.0, 0.5, 2.0, 1.5, 0.7, 3.0])
@@ -1061,10 +1049,7 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
                 ctx.model.accuracy.source_mode, '"analytic" for a lensed scene (clumps that '
                 'move must render anywhere without a rebuild; see lensed_fit_accuracy)')
     steps = []
-    aside = _compile_render_aside(ctx, u0) if ctx.host_index.size else None
     u, lnl = _fit_host(ctx, u0, steps)
-    if aside is not None:
-        aside.join()
     u, lnl, active, n_images = _count(ctx, u, lnl, steps)
     lnl, active = _prune(ctx, u, lnl, active, steps)
     if opts.merge:
