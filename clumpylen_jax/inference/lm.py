@@ -122,6 +122,9 @@ def columns_by_kind(f, v, entries, kinds, groups, bands):
     band), split by band into its entries' columns: the same columns to rounding, far
     fewer pushed through the model (a S1063 counting step: 15 instead of 30 for host and
     clumps; the joint fit: 6 + 45 + 17 instead of 102)."""
+    if not kinds:       # no entries (e.g. no host and no background): no columns
+        out = f(v, None)
+        return out, jnp.zeros((0, out[0].size), v.dtype)
     entries = jnp.asarray(entries)
     geo = [p for p, k in enumerate(kinds) if k[0] is None]
     cols = [None] * len(kinds)
