@@ -232,20 +232,27 @@ def test_fisher_with_an_active_mask_is_the_fisher_of_the_active_clumps():
     assert np.allclose(f_masked[np.ix_(rows, rows)], f2, rtol=1e-8, atol=0)
 
 
-def _host_disk_case():
+def _host_disk_case(n_bands=1, diffuse_spacing_arcsec=None):
     """(model, data, param) of a bulge, a disk and three round-Gaussian clumps, the data
-    1.1× the model, every host, clump and background entry free but the host's shape."""
+    1.1× the model, every host, clump and background entry free but the host's shape;
+    n_bands bands (fluxes of another colour in each), an optional diffuse light."""
     from clumpylen_jax.inference.likelihood import make_data
     from clumpylen_jax.inference.params import make_state, parametrize
     from clumpylen_jax.source import Disk
-    src = Source(bulge=HOST, disk=Disk(dataclasses.replace(HOST, re_arcsec=jnp.asarray(0.4)),
+    scale = 1.0 + 0.5 * np.arange(n_bands)       # a colour: fluxes differ between bands
+    host = dataclasses.replace(HOST, flux=HOST.flux[0] * jnp.asarray(scale))
+    src = Source(bulge=host, disk=Disk(dataclasses.replace(host, re_arcsec=jnp.asarray(0.4)),
                                        jnp.asarray(0.5)),
-                 clumps=dataclasses.replace(CLUMPS, q=jnp.ones(3)))
-    model = build_model(src, BANDS, field_arcsec=FIELD,
+                 clumps=dataclasses.replace(CLUMPS, q=jnp.ones(3),
+                                            flux=CLUMPS.flux[:, :1] * jnp.asarray(scale[::-1])))
+    bands = BANDS if n_bands == 1 else toy_bands(n_bands, psf_sigma_pix=1.0)
+    model = build_model(src, bands, field_arcsec=FIELD,
                         accuracy=dataclasses.replace(ACC, clump_pixels="round_gaussian"))
-    img = np.asarray(eqx.filter_jit(lambda m, s: m.noiseless(s))(model, src)[0])
-    data = make_data(model, [img * 1.1], [np.ones_like(img)], kind="gaussian")
-    param = parametrize(make_state(src, 1), {
+    imgs = [np.asarray(i) for i in eqx.filter_jit(lambda m, s: m.noiseless(s))(model, src)]
+    data = make_data(model, [i * (1.1 + 0.1 * k) for k, i in enumerate(imgs)],
+                     [np.ones_like(i) for i in imgs], kind="gaussian",
+                     diffuse_spacing_arcsec=diffuse_spacing_arcsec)
+    param = parametrize(make_state(src, n_bands), {
         "bulge.flux": True, "bulge.re_arcsec": True, "disk.sersic.flux": True,
         "clumps.flux": True, "clumps.center_arcsec": True, "clumps.re_arcsec": True,
         "background": True})
@@ -269,6 +276,30 @@ def test_blockwise_jacobian_is_the_jacobian():
     assert np.abs(np.asarray(r) - np.asarray(resid(u))).max() <= 1e-12 * np.abs(np.asarray(r)).max()
     assert np.abs(np.asarray(J) - np.asarray(J0)).max() <= 1e-12 * np.abs(np.asarray(J0)).max()
     assert np.abs(np.asarray(J0)[:, clumps]).max() > 0 and np.abs(np.asarray(J0)[:, host]).max() > 0
+
+
+def test_blockwise_jacobian_with_linear_groups_is_the_jacobian():
+    """lm.blockwise with the per-band linear columns (host and clump fluxes, background) made
+    by groups, one derivative each split by band (`lm.columns_by_kind`): the Jacobian of
+    one jacfwd, with two bands of different colours and a diffuse light profiled out (each
+    band's residuals, its diffuse entries too, move with its own fluxes only)."""
+    from clumpylen_jax.inference.likelihood import make_residuals
+    from clumpylen_jax.inference.lm import band_of_residuals, blockwise, held_residuals
+    from clumpylen_jax.inference.params import entry_kinds, part_blocks
+    for diffuse in (None, 0.3):
+        model, data, param = _host_disk_case(n_bands=2, diffuse_spacing_arcsec=diffuse)
+        u = param.initial() + 0.01
+        kinds = entry_kinds(param, np.arange(param.size))
+        assert sum(k[0] == "clumps.flux" for k in kinds) == 6 and \
+            {k[2] for k in kinds if k[0] == "clumps.flux"} == {0, 1, 2}
+        r, J = jax.jit(blockwise(held_residuals(model, data, param), part_blocks(param), kinds,
+                                 band_of_residuals(data)))(u)
+        resid = jax.jit(make_residuals(model, data, param))
+        J0 = np.asarray(jax.jit(jax.jacfwd(resid))(u))
+        assert np.abs(np.asarray(r) - np.asarray(resid(u))).max() <= 1e-12 * np.abs(np.asarray(r)).max()
+        assert np.abs(np.asarray(J) - J0).max() <= 1e-12 * np.abs(J0).max()
+        flux_cols = [p for p, k in enumerate(kinds) if k[0] is not None]
+        assert np.all(np.abs(J0[:, flux_cols]).max(axis=0) > 0)
 
 
 def test_lm_with_a_traced_zero_step_limit_takes_no_step():
@@ -310,19 +341,25 @@ def _rows_case():
 
 
 def _local_normal_matches(model, data, param, u, active, slots, idx, n_host, chunks):
-    """`capacity._local_normal` against one blockwise Jacobian of every slot with the mask."""
+    """`capacity._local_normal` against one blockwise Jacobian of every slot with the mask,
+    every column pushed through the model and with the per-band linear ones (fluxes,
+    background) made by groups (`kinds`)."""
     from clumpylen_jax.inference import capacity
     from clumpylen_jax.inference.lm import blockwise, held_residuals
-    from clumpylen_jax.inference.params import part_blocks
+    from clumpylen_jax.inference.params import entry_kinds, part_blocks
     r0, J0 = (np.asarray(a) for a in jax.jit(blockwise(
         held_residuals(model, data, param, active=active), part_blocks(param)))(u))
     real = np.asarray(idx[idx < param.size])
     J = J0[:, real]
     held = capacity.held_light(model, param.state(u), slots, active)
     v = u.at[idx].get(mode="fill", fill_value=0.0)
-    for chunk in chunks:
+    per_row = (idx.size - n_host) // slots.size
+    kinds = (entry_kinds(param, np.asarray(idx[:n_host])),
+             entry_kinds(param, np.asarray(idx[n_host:n_host + per_row])))
+    assert any(k[0] is not None for k in kinds[1])
+    for chunk, kind in [(c, k) for c in chunks for k in (None, kinds)]:
         normal, residual = capacity._local_normal(model, data, param, u, idx, slots, active,
-                                                  held, n_host, chunk)
+                                                  held, n_host, chunk, kind)
         r, H, g = (np.asarray(a) for a in jax.jit(normal)(v))
         assert np.abs(np.asarray(jax.jit(residual)(v)) - r).max() <= 1e-12 * np.abs(r).max()
         n = real.size

@@ -37,8 +37,9 @@ from ..convolve import fft_shape
 from ..psf import PSF, fwhm_arcsec
 from ..source import Source
 from .likelihood import predicted_images, whitened_residuals
-from .lm import blockwise, held_residuals, levenberg_marquardt
-from .params import clump_rows, masked_clumps, part_blocks
+from .lm import (band_of_residuals, blockwise, columns_by_kind, held_residuals, linear_groups,
+                 levenberg_marquardt)
+from .params import clump_rows, masked_clumps, only_gradient, part_blocks
 from .uncertainty import fisher_for_data
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
@@ -128,7 +129,8 @@ def _normal_by_blocks(r, T_host, T_chunks, n_chunks):
     return jax.lax.fori_loop(0, n_chunks, row, (H, g))
 
 
-def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int, chunk: int):
+def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int, chunk: int,
+                  kinds=None):
     """(v ↦ (residuals, JᵀJ, Jᵀr), v ↦ residuals) of the fit over the entries idx of u (the
     rest held).
 
@@ -141,31 +143,61 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
     is the same for a counting step (one chunk) and the final refit of every kept clump
     (C chunks at most: compiled once), and a step costs the chunks it uses: padding
     columns are never pushed through the model, and their blocks of JᵀJ never formed.
-    fixed: the light of the active clumps outside slots (`held_light`)."""
+    fixed: the light of the active clumps outside slots (`held_light`).
+    kinds: None, or (host kinds [n_host], kinds of a row's entries [width / chunk]) as
+    `params.entry_kinds` gives them: the per-band linear entries' columns (fluxes,
+    background) are then made by groups (`lm.columns_by_kind`; a row's fluxes one group)."""
     cap = active.shape[0]
     n_c = slots.size // chunk
     width = (idx.size - n_host) // n_c
     n_chunks = (jnp.sum(slots < cap) + chunk - 1) // chunk
 
-    def state_of(v):
-        return masked_clumps(param.state(u.at[idx].set(v, mode="drop")), active)
+    def state_of(v, only=None):
+        st = masked_clumps(param.state(u.at[idx].set(v, mode="drop")), active)
+        return st if only is None else only_gradient(st, only)
 
     def chunk_residuals(c):
         """The chunk's light and its residuals alone (whose derivatives are the residuals')."""
         rows = jax.lax.dynamic_slice(slots, (c * chunk,), (chunk,))
 
-        def f(w):
-            light = model.band_images(_rows_source(model, state_of(w), rows, rows < cap))
+        def f(w, only=None):
+            light = model.band_images(_rows_source(model, state_of(w, only), rows, rows < cap))
             return whitened_residuals(light, data), light
         return f
 
     def host_residuals(light):
-        def f(w):
-            st = state_of(w)
+        def f(w, only=None):
+            st = state_of(w, only)
             mu = _host_images(model, st.source, light)
             return whitened_residuals(tuple(m + b + l for m, b, l in zip(
                 mu, st.background_counts_per_s, light)), data)
         return f
+
+    if kinds is not None:
+        host_kinds, row_kinds = kinds
+        chunk_kinds = tuple(row_kinds) * chunk
+        bands = band_of_residuals(data)
+        host_groups = linear_groups(host_kinds)
+        chunk_groups = linear_groups(chunk_kinds, len(row_kinds))
+
+        def chunk_tangents(c, v):
+            (_, l_c), t_c = columns_by_kind(chunk_residuals(c), v,
+                                            n_host + c * width + jnp.arange(width), chunk_kinds,
+                                            chunk_groups, bands)
+            return l_c, t_c
+
+        def host_tangents(light, v):
+            f = host_residuals(light)
+            (r, _), t = columns_by_kind(lambda w, only: (f(w, only), ()), v, np.arange(n_host),
+                                        host_kinds, host_groups, bands)
+            return r, t
+    else:
+        def chunk_tangents(c, v):
+            (_, l_c), (t_c, _) = _tangents(chunk_residuals(c), v, n_host + c * width, width)
+            return l_c, t_c
+
+        def host_tangents(light, v):
+            return _tangents(host_residuals(light), v, 0, n_host)
 
     def residual(v):
         """The residuals alone (what decides a trial), the light summed as `normal` sums it."""
@@ -178,22 +210,23 @@ def _local_normal(model, data, param, u, idx, slots, active, fixed, n_host: int,
     def normal(v):
         def add_chunk(c, carry):
             light, T_chunks = carry
-            (_, l_c), (t_c, _) = _tangents(chunk_residuals(c), v, n_host + c * width, width)
+            l_c, t_c = chunk_tangents(c, v)
             return tuple(a + b for a, b in zip(light, l_c)), T_chunks.at[c].set(t_c)
         n_r = sum(f.size for f in fixed) + sum(data.n_diffuse)   # whitened_residuals' length
         T0 = jnp.zeros((n_c, width, n_r), v.dtype)
         light, T_chunks = jax.lax.fori_loop(0, n_chunks, add_chunk, (tuple(fixed), T0))
-        r, T_host = _tangents(host_residuals(light), v, 0, n_host)
+        r, T_host = host_tangents(light, v)
         H, g = _normal_by_blocks(r, T_host, T_chunks, n_chunks)
         return r, H, g
     return normal, residual
 
 
-def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host, chunk):
+def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_host, chunk,
+                 kinds=None):
     """LM over the entries idx of u only (`_local_normal`)."""
     normal, residual = _local_normal(model, data, param, u, idx, slots, active,
                                      held_light(model, param.state(u), slots, active), n_host,
-                                     chunk)
+                                     chunk, kinds)
     v0 = u.at[idx].get(mode="fill", fill_value=0.0)
     r = levenberg_marquardt(residual, v0, max_steps, rtol, normal=normal)
     return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps
@@ -201,13 +234,14 @@ def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_h
 
 @eqx.filter_jit
 def solve_local_batch(model, data, param, us, idxs, slots, actives, rtol, max_steps,
-                      n_host: int, chunk: int):
+                      n_host: int, chunk: int, kinds=None):
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
     step is that of the columns used (host, background and the clumps of the rows slots[s],
     int [S, C·chunk]), not the capacity's. Layout and padding: `_local_normal`; one compiled
-    program for any number of rows up to C·chunk. max_steps as in solve_batch."""
+    program for any number of rows up to C·chunk. max_steps as in solve_batch. kinds
+    (static): the layout's per-band linear entries, `_local_normal`."""
     return jax.lax.map(lambda a: _solve_local(model, data, param, *a[:4], rtol, a[4], n_host,
-                                              chunk),
+                                              chunk, kinds),
                        (us, idxs, slots, actives, _per_start(max_steps, us.shape[0])))  # see solve_batch
 
 

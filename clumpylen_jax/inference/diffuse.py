@@ -122,9 +122,16 @@ def coefficients(basis: DiffuseBasis, r_white):
 
 def profiled_residual(basis: DiffuseBasis, r_white):
     """[n_pix + K]: (r − Ã a*, √λ a*), whose squared norm is the χ² profiled over a."""
+    return profiled_residual_and_light(basis, r_white)[0]
+
+
+def profiled_residual_and_light(basis: DiffuseBasis, r_white):
+    """(`profiled_residual`, the diffuse image B a* [ny, nx]) from one solve for a* (a caller
+    that wants both would otherwise solve twice: `likelihood.chi2_and_images`)."""
     a = coefficients(basis, r_white)
-    fitted = (basis.weight * basis.image(a)).ravel()
-    return jnp.concatenate([r_white - fitted, basis.sqrt_ridge * a])
+    img = basis.image(a)
+    fitted = (basis.weight * img).ravel()
+    return jnp.concatenate([r_white - fitted, basis.sqrt_ridge * a]), img
 
 
 def light(basis: DiffuseBasis, r_white, shape):

@@ -256,8 +256,13 @@ def chi2_and_images(scene_model, data: ImageData, state: FitState):
     (`auto`) and the observation fit's final images call it with the same model, data
     layout and clump capacity, so it compiles once for both."""
     mu = predicted_images(scene_model, state)
-    light = diffuse_images(mu, data)
-    return tuple(band_chi2(mu, data)), tuple(m + g for m, g in zip(mu, light))
+    if data.diffuse is None:
+        return tuple(band_chi2(mu, data)), tuple(mu)
+    # one solve for each band's diffuse coefficients, for both its χ² and its light
+    both = [_diffuse.profiled_residual_and_light(b, r) for b, r in
+            zip(data.diffuse, _whitened(mu, data))]
+    return (tuple(jnp.sum(r * r) for r, _ in both),
+            tuple(m + g.reshape(m.shape) for m, (_, g) in zip(mu, both)))
 
 
 def make_residuals(scene_model, data: ImageData, param: Parametrization) -> Callable:

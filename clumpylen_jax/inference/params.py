@@ -107,6 +107,36 @@ def held(state: FitState, part: str) -> FitState:
                        is_leaf=lambda x: x is None)
 
 
+def only_gradient(state: FitState, path: str) -> FitState:
+    """The state with every leaf behind stop_gradient except the one at `path` (e.g.
+    "clumps.flux"): a forward-mode derivative along that leaf then carries symbolic-zero
+    tangents through everything else, e.g. the profile of a component whose flux moves
+    (`lm.columns_by_kind`)."""
+    get = _getter(path)
+    stopped = jax.tree_util.tree_map(jax.lax.stop_gradient, state)
+    return eqx.tree_at(get, stopped, get(state))
+
+
+# leaves that enter the images linearly and band by band: entry (…, b) moves band b's image
+# only, by its own unit image (host and clump fluxes, the background level)
+PER_BAND_LINEAR = ("bulge.flux", "disk.sersic.flux", "clumps.flux", "background")
+
+
+def entry_kinds(param: "Parametrization", entries) -> tuple:
+    """Per entry of u in `entries`: (leaf path, band, row) where the leaf is in
+    PER_BAND_LINEAR (row: the clump's for clumps.flux [N, B], else 0), else (None, −1, 0);
+    an entry outside u (padding) is (None, −1, 0). Static, for `lm.columns_by_kind`."""
+    where, start = {}, 0
+    for leaf in param.leaves:
+        for k, i in enumerate(leaf.index):
+            at = np.unravel_index(i, leaf.shape) if leaf.shape else (0,)
+            row = int(at[0]) if len(at) > 1 else 0
+            where[start + k] = ((leaf.path, int(at[-1]), row) if leaf.path in PER_BAND_LINEAR
+                                else (None, -1, 0))
+        start += leaf.size
+    return tuple(where.get(int(e), (None, -1, 0)) for e in np.asarray(entries).ravel())
+
+
 def part_blocks(param: "Parametrization"):
     """((entries of u that move the host or the background), (entries that move the clumps,
     their masses or ages)): numpy int arrays partitioning u. Each leaf's transform is

@@ -84,9 +84,11 @@ def auto_starts(observations, frame, scene) -> dict:
     # no Fisher errors there: only the optimum is used, the joint fit below gives the errors;
     # no merge or shape moves: the joint fit starts round clumps (q, PA not passed on), and
     # the moves are measured on the simulated recovery scenes only (issue 18)
-    # a looser tolerance (AUTO_RTOL): the joint fit refits every parameter from this optimum
+    # a looser tolerance (AUTO_RTOL): the joint fit refits every parameter from this optimum;
+    # and for the same reason one final start, unperturbed (`AutoOptions.final_starts`)
     wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
                   clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps, errors=False,
+                  final_starts=1,
                   merge=False, rtol=AUTO_RTOL, diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec,
                   host_re_range_arcsec=None if opts.diffuse_spacing_arcsec is None
                   else host_re_bounds(frame, opts.diffuse_spacing_arcsec),
