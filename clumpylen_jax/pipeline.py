@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -89,6 +88,9 @@ class Prepared:
     host_masses_msun: dict
     timings: dict
     programs: object = None         # programs folder, a programcache.ReadAhead of it, or None
+    # the textured disk's `render.disk_modulation_mean` (float64; None: no textured disk),
+    # computed once by `prepare` and given to every host-light program
+    modulation_mean: object = None
 
 
 def _cosmology(scene):
@@ -220,8 +222,9 @@ def _disk_brightness(baked, x, y):
     return render.disk_unit_brightness(disk, x, y, mean)
 
 
-def _sample_catalog(scene, bulge, disk, cosmology, programs):
-    """The clump catalogue (astropy Table) and the host masses left after clumps."""
+def _sample_catalog(scene, bulge, disk, cosmology, programs, modulation_mean):
+    """The clump catalogue (astropy Table) and the host masses left after clumps
+    (modulation_mean: the disk's, `_modulation_mean`)."""
     from . import population
     src = scene.source
     cl = src.clumps
@@ -246,10 +249,8 @@ def _sample_catalog(scene, bulge, disk, cosmology, programs):
     # programs kept in the cache folder (`_program`): a warm run neither traces nor lowers
     # them. The host's arrays are baked into the brightness, as a jit's closure has them.
     if host_name == "disk":
-        # one compiled quadrature, not hundreds of op-by-op dispatches
-        mean = _modulation_mean(programs, host_tree)
         brightness = _chunked_calls(programs, "population.disk_brightness", _disk_brightness,
-                                    (host_tree, mean))
+                                    (host_tree, modulation_mean))
         geo = host_tree.sersic
     else:
         brightness = _chunked_calls(programs, "population.sersic_brightness",
@@ -325,11 +326,12 @@ def _field(scene, lens, source, accuracy):
 
 
 def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, programs):
-    """The clump catalogue, the host masses left after clumps and the source with its
-    fluxes per band."""
+    """The clump catalogue, the host masses left after clumps, the source with its
+    fluxes per band and the disk's modulation mean (`_modulation_mean`)."""
     bulge_t, disk_t = _host_pytrees(scene, jnp.float64)
     with progress.stage("population"):
-        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology, programs)
+        mean = _modulation_mean(programs, disk_t)
+        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology, programs, mean)
     with progress.stage("photometry"):
         src = scene.source
         bulge = disk = clumps = None
@@ -354,7 +356,7 @@ def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, 
                 jnp.asarray(np.asarray(table["q"], float)),
                 jnp.asarray(np.asarray(table["pa_rad"], float)))
         source = Source(bulge, disk, clumps).astype(dtype)
-    return table, host_masses, source
+    return table, host_masses, source, mean
 
 
 def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
@@ -380,13 +382,13 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
     # photometry (mostly XLA compiling, which leaves the GIL): on 2 cores the two overlap.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-psf") as pool:
         later_bands = pool.submit(_bands_stage, scene, accuracy, progress)
-        table, host_masses, source = _population_and_photometry(scene, filters, zps, cosmology,
-                                                                dtype, progress, programs)
+        table, host_masses, source, mean = _population_and_photometry(
+            scene, filters, zps, cosmology, dtype, progress, programs)
         with progress.stage("bands and PSFs (wait)"):
             bands = later_bands.result()
     if on_source is not None:
         on_source(Prepared(scene, source, table, None, bands, zps, None, None, accuracy, dtype,
-                           host_masses, progress.timings, programs))
+                           host_masses, progress.timings, programs, mean))
     with progress.stage("lens"):
         lens = build_lens(scene, cosmology)
         field = _field(scene, lens, source, accuracy)
@@ -401,7 +403,7 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
             field_arcsec=field, lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
             source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
-                    host_masses, progress.timings, programs)
+                    host_masses, progress.timings, programs, mean)
 
 
 # ------------------------------------------------------------------ running and writing
@@ -411,27 +413,25 @@ def _program_folder():
     return cache_root() / "programs" if cache_enabled() else None
 
 
-_MEANS = {}
-_MEANS_LOCK = threading.Lock()
-
-
 def _modulation_mean(programs, disk):
-    """`render.disk_modulation_mean(disk)` by a program of its own, computed once per process
-    for a disk: the population and every host-light program take it as an input (issue 20:
-    each held a copy of its quadrature, ~5k lines of optimised HLO)."""
+    """`render.disk_modulation_mean(disk)` by a program of its own (None: no textured disk).
+    `prepare` calls it once and keeps the value in `Prepared.modulation_mean`: the
+    population and every host-light program take it as an input (issue 20: each held a copy
+    of its quadrature, ~5k lines of optimised HLO)."""
     if disk is None or disk.texture is None:
         return None
     # the mean does not depend on the fluxes: one program and value for any bands
     disk = dataclasses.replace(disk, sersic=dataclasses.replace(
         disk.sersic, flux=jnp.zeros(1, jnp.result_type(disk.sersic.re_arcsec))))
-    leaves, tree = jax.tree_util.tree_flatten(disk)
-    key = (str(tree),) + tuple((np.asarray(x).dtype.str, np.asarray(x).tobytes())
-                               for x in leaves)
-    with _MEANS_LOCK:      # asked for by the main thread and the early launches
-        if key not in _MEANS:
-            _MEANS[key] = _program(programs, "population.disk_modulation_mean",
-                                   render.disk_modulation_mean, disk)
-        return _MEANS[key]
+    return _program(programs, "population.disk_modulation_mean", render.disk_modulation_mean,
+                    disk)
+
+
+def _mean_for(prep: "Prepared"):
+    """The modulation mean in the dtype of the scene's source (a float32 scene's host-light
+    programs stay float32)."""
+    mean = prep.modulation_mean
+    return None if mean is None else jnp.asarray(mean, prep.dtype)
 
 
 def _program(programs, name: str, fun, *args):
@@ -441,19 +441,18 @@ def _program(programs, name: str, fun, *args):
     return programcache.call(name, fun, *args, folder=programs)
 
 
-def _with_host_light(programs, model, source: Source):
+def _with_host_light(programs, model, source: Source, modulation_mean=None):
     """The model with its host's light per unit flux held (`SceneModel.with_host_light`):
     computed by a program of its own, or read back from the cache folder (`lightcache`:
     it depends on the host's geometry and the grids only). A source without host: the
-    model itself."""
+    model itself. modulation_mean: the textured disk's (`_mean_for`), None without one."""
     if source.bulge is None and source.disk is None:
         return model
     # what the light depends on, and no more (the key hashes every array it is given):
     # the host renderer (the traced pixels), the sub-grids and the host
     subgrids = tuple(first_band_per_subgrid(model.layouts).items())
     units = _kept_light(programs, "host_unit_light", _host_unit_light, model.hosts, subgrids,
-                        Source(source.bulge, source.disk, None),
-                        _modulation_mean(programs, source.disk))
+                        Source(source.bulge, source.disk, None), modulation_mean)
     return model.with_host_light(units)
 
 
@@ -587,7 +586,8 @@ def _launch_unlensed(prep: Prepared, prog: _Progress):
             folder=cache_root() / "models" if cache_enabled() else None,
             accuracy=prep.accuracy, dtype=prep.dtype)
         return unl_model, _jit_call(prep.programs,
-                                    _with_host_light(prep.programs, unl_model, prep.source),
+                                    _with_host_light(prep.programs, unl_model, prep.source,
+                                                     _mean_for(prep)),
                                     'band_images', prep.source)
 
 
@@ -674,7 +674,8 @@ def _render_bands(prep: Prepared, hr, later_noise=None):
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
     magnify = bool(table is not None and len(table) and model.lensed)
     clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
-                                      _with_host_light(prep.programs, model, prep.source),
+                                      _with_host_light(prep.programs, model, prep.source,
+                                                       _mean_for(prep)),
                                       prep.source, hr_fluxes, magnify)
     noisy = clean if later_noise is None else \
         later_noise.result()(jax.random.key(scene.seed), clean)
@@ -791,11 +792,10 @@ def _band_render(model, source, hr_fluxes, magnify: bool):
     lens-plane images (`lens_plane`) of the source with those fluxes, and with `magnify` the
     clumps' magnifications, as one program: the work they share (host light per unit flux at
     the traced pixels, rays, the clumps' stamps) is done once, and one program is compiled
-    and loaded instead of three."""
-    bands = model.noiseless(source)
-    hr = None if hr_fluxes is None else model.lens_plane(_with_fluxes(source, hr_fluxes))
-    mags = model.clump_magnifications(source, beside_band_images=True) if magnify else None
-    return bands, hr, mags
+    and loaded instead of three; within it, the clumps' stamps are made by one call for
+    all three (`SceneModel.noiseless_lens_plane_magnifications`)."""
+    return model.noiseless_lens_plane_magnifications(
+        source, None if hr_fluxes is None else _with_fluxes(source, hr_fluxes), magnify)
 
 
 def _fluxes(source: Source):
@@ -847,7 +847,7 @@ def _hr_source_plane(prep: Prepared, mono):
     if mono.bulge is not None or mono.disk is not None:
         host = _kept_light(prep.programs, "source_plane_host_light", _source_plane_host_light,
                            Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy,
-                           _modulation_mean(prep.programs, mono.disk))
+                           _mean_for(prep))
     return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
                            host, sgrid, prep.accuracy, groups)
 
