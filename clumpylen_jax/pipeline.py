@@ -441,23 +441,33 @@ def _program(programs, name: str, fun, *args):
     return programcache.call(name, fun, *args, folder=programs)
 
 
-def _with_host_light(programs, model, source: Source, modulation_mean=None):
+def _with_host_light(programs, model, source: Source, modulation_mean=None, extra_grids=()):
     """The model with its host's light per unit flux held (`SceneModel.with_host_light`):
     computed by a program of its own, or read back from the cache folder (`lightcache`:
     it depends on the host's geometry and the grids only). A source without host: the
-    model itself. modulation_mean: the textured disk's (`_mean_for`), None without one."""
+    model itself. modulation_mean: the textured disk's (`_mean_for`), None without one.
+    extra_grids (unlensed models only): more grids whose host light the same program makes
+    (`UnlensedHosts.unit_light`); returns (model, their light) then."""
     if source.bulge is None and source.disk is None:
-        return model
+        return (model, [(None, None)] * len(extra_grids)) if extra_grids else model
     # what the light depends on, and no more (the key hashes every array it is given):
     # the host renderer (the traced pixels), the sub-grids and the host
     subgrids = tuple(first_band_per_subgrid(model.layouts).items())
-    units = _kept_light(programs, "host_unit_light", _host_unit_light, model.hosts, subgrids,
-                        Source(source.bulge, source.disk, None), modulation_mean)
-    return model.with_host_light(units)
+    args = (model.hosts, subgrids, Source(source.bulge, source.disk, None), modulation_mean)
+    if not extra_grids:
+        return model.with_host_light(_kept_light(programs, "host_unit_light", _host_unit_light,
+                                                 *args))
+    units = _kept_light(programs, "host_unit_light_and_grids", _host_unit_light_and_grids,
+                        *args, tuple(extra_grids))
+    return model.with_host_light(units[:len(subgrids)]), units[len(subgrids):]
 
 
 def _host_unit_light(hosts, subgrids, source: Source, modulation_mean=None):
     return hosts.unit_light(source, dict(subgrids), modulation_mean)
+
+
+def _host_unit_light_and_grids(hosts, subgrids, source: Source, modulation_mean, grids):
+    return hosts.unit_light(source, dict(subgrids), modulation_mean, extra_grids=grids)
 
 
 def _kept_light(programs, name: str, fun, *args):
@@ -566,18 +576,29 @@ def _launch_early(prep: Prepared, prog: _Progress, pool, out: Path) -> dict:
     model are not made yet: {"unlensed": future or None, "hr": (the high-resolution source
     as `_hr_source` gives it, its future) or None}."""
     scene = prep.scene
-    later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
-    hr = None
+    hr = sgrid = None
     if scene.output.hr:
         with prog.stage("high-resolution photometry"):
             hr = _hr_source(prep)
+            sgrid = _hr_grid(prep, hr[0])
         (out / "hr").mkdir(exist_ok=True)
+    # with both asked for, the unlensed bands' host light and the high-resolution source
+    # plane's are made by one program (the same profiles on more pixels: one compilation,
+    # ~7k lines of optimised HLO fewer); with one of them, its own only
+    src = prep.source
+    shared = (sgrid if scene.output.unlensed and (src.bulge is not None or src.disk is not None)
+              else None)
+    later_unl = (pool.submit(_launch_unlensed, prep, prog, shared)
+                 if scene.output.unlensed else None)
     return {"unlensed": later_unl,
-            "hr": None if hr is None else (hr, pool.submit(_launch_hr, prep, prog, hr))}
+            "hr": None if hr is None else (hr, pool.submit(
+                _launch_hr, prep, prog, hr, sgrid, None if shared is None else later_unl))}
 
 
-def _launch_unlensed(prep: Prepared, prog: _Progress):
-    """The unlensed band model and its images (launched, not waited for)."""
+def _launch_unlensed(prep: Prepared, prog: _Progress, hr_grid=None):
+    """The unlensed band model, its images (launched, not waited for) and, given hr_grid,
+    the host's light on it as `_source_plane_host_light` gives it (made with the bands'),
+    else None."""
     with prog.stage("unlensed images (launch)"):
         # kept like the lensed model (`modelcache`): its PSF kernels and their transforms
         # are resampled and transformed again on every run otherwise (~0.5 s of CPU)
@@ -585,10 +606,16 @@ def _launch_unlensed(prep: Prepared, prog: _Progress):
             model_mod.build_model, prep.source, prep.bands, lens=None,
             folder=cache_root() / "models" if cache_enabled() else None,
             accuracy=prep.accuracy, dtype=prep.dtype)
-        return unl_model, _jit_call(prep.programs,
-                                    _with_host_light(prep.programs, unl_model, prep.source,
-                                                     _mean_for(prep)),
-                                    'band_images', prep.source)
+        held, extra = _with_host_light(prep.programs, unl_model, prep.source, _mean_for(prep),
+                                       () if hr_grid is None else (hr_grid,))
+        hr_host = None
+        if hr_grid is not None:
+            bulge, disk = extra[0]
+            if disk is not None:   # as `render.disk_image`: the values × the pixel area
+                scale = render.disk_image_scale(prep.source.disk, hr_grid)
+                disk = np.asarray(disk) if scale == 1.0 else np.asarray(disk) * scale
+            hr_host = (bulge, disk)
+        return unl_model, _jit_call(prep.programs, held, 'band_images', prep.source), hr_host
 
 
 def _write_hr_unlensed_stage(prep, prog, out, hr, later_hr):
@@ -623,7 +650,7 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     unlensed, unl_model = [None] * len(scene.bands), None
     if later_unl is not None:
         with prog.stage("unlensed images"):
-            unl_model, unl_images = later_unl.result()
+            unl_model, unl_images, _ = later_unl.result()
             unlensed = [np.asarray(x) for x in unl_images]
     summary_bands, grids = {}, {}
     for k, b in enumerate(scene.bands):
@@ -824,32 +851,38 @@ def _hr_source(prep: Prepared):
     return prep.source, list(prep.scene.band_names), "counts/s/pixel"
 
 
-def _launch_hr(prep: Prepared, prog: _Progress, hr):
-    """The high-resolution source-plane program, launched (not waited for)."""
+def _launch_hr(prep: Prepared, prog: _Progress, hr, sgrid, later_unl=None):
+    """The high-resolution source-plane program, launched (not waited for); later_unl: the
+    `_launch_unlensed` (same pool, submitted before) that made the host's light on sgrid."""
     with prog.stage("high-resolution images (launch)"):
-        return _hr_source_plane(prep, hr[0])
+        return _hr_source_plane(prep, hr[0], sgrid,
+                                None if later_unl is None else later_unl.result()[2])
 
 
-def _hr_source_plane(prep: Prepared, mono):
-    scene = prep.scene
+def _hr_grid(prep: Prepared, mono):
+    """The high-resolution source-plane grid (at most 2047² pixels over the source)."""
     center, radius = model_mod.source_extent(mono, prep.accuracy.source_flux_fraction,
                                              prep.accuracy.stamp_flux_fraction)
     from .pixels import Grid
-    pix = max(scene.render.source_pixel_arcsec, 2 * radius / 2047)
-    sgrid = Grid.centered(center, radius, pix)
+    pix = max(prep.scene.render.source_pixel_arcsec, 2 * radius / 2047)
+    return Grid.centered(center, radius, pix)
+
+
+def _hr_source_plane(prep: Prepared, mono, sgrid, host=None):
+    """(sgrid, the source-plane images of `mono` on it, launched); host: its host light
+    (`_source_plane_host_light`), made before, or None: made here."""
     groups = []
     if mono.clumps is not None and mono.clumps.count > 0:
         groups = render.stamp_groups(mono.clumps.re_arcsec, mono.clumps.n, sgrid.pixel_arcsec,
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
     # the stamp groups' indices as tuples: static (baked in as constants), as before
     groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
-    host = (None, None)
-    if mono.bulge is not None or mono.disk is not None:
+    if host is None and (mono.bulge is not None or mono.disk is not None):
         host = _kept_light(prep.programs, "source_plane_host_light", _source_plane_host_light,
                            Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy,
                            _mean_for(prep))
     return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
-                           host, sgrid, prep.accuracy, groups)
+                           host or (None, None), sgrid, prep.accuracy, groups)
 
 
 def _write_hr_set(prep: Prepared, out: Path, hr, images, grid, lensed: bool, **composite):

@@ -188,3 +188,26 @@ def test_noise_program_draws_what_observe_draws():
     assert len(drawn) == len(noisy)
     for a, b in zip(noisy, drawn):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_unlensed_program_makes_the_high_resolution_host_light():
+    """With unlensed and high-resolution outputs both asked for, the unlensed bands' host
+    light program also makes the host's light on the high-resolution source grid (one
+    program fewer): it is what `_source_plane_host_light` makes there on its own."""
+    import jax
+
+    from clumpylen_jax import scene as sc
+    from clumpylen_jax.source import Source
+
+    prep = pipeline.prepare(sc.load_scene("single-sersic"))
+    mono = pipeline._hr_source(prep)[0]
+    sgrid = pipeline._hr_grid(prep, mono)
+    _, _, host = pipeline._launch_unlensed(prep, pipeline._Progress(False, 1), sgrid)
+    alone = jax.jit(pipeline._source_plane_host_light, static_argnums=(1, 2))(
+        Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy, pipeline._mean_for(prep))
+    assert any(a is not None for a in alone)
+    for a, b in zip(host, alone):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12,
+                                       atol=1e-14 * float(np.max(np.abs(b))))
