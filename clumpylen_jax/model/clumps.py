@@ -63,6 +63,22 @@ class UnlensedClumps(Renderer):
         images = render.clumps_images(cl, targets, cl.flux, order=self.order, core=self.core)
         return {g: BandStack([img], cl.flux.dtype) for (g, _), img in zip(targets, images)}
 
+    def subgrid_light_and_grid(self, source: Source, subgrids, grid: Grid, groups, flux):
+        """(`subgrid_light(source, subgrids)`, the clumps' light [ny, nx, C] on one more
+        `grid` with these stamp `groups` and fluxes `flux` [N, C] (0.0 without groups)),
+        their stamps made by one call: one exact-pixel kernel for both (the high-resolution
+        source plane beside the unlensed bands)."""
+        cl = source.clumps
+        if cl is None or cl.count == 0:
+            return {}, 0.0
+        targets = [(g, tuple((side, idx, strip) for (side, strip), idx
+                             in zip(self.sides[k], self.index[k]))) for g, k in subgrids.items()]
+        stamps = render.grouped_stamps_on(cl, targets + [(grid, groups)], order=self.order,
+                                          core=self.core)
+        light = {g: BandStack([render.scatter_grouped(st, cl.flux, g)], cl.flux.dtype)
+                 for st, (g, _) in zip(stamps, targets)}
+        return light, render.scatter_grouped(stamps[-1], flux, grid)
+
     def magnifications(self, source: Source):
         cl = source.clumps
         return jnp.zeros(cl.count, cl.re_arcsec.dtype)

@@ -101,6 +101,17 @@ class SceneModel(eqx.Module):
         return self._observed([r.subgrid_light(source, subgrids)
                                for r in (self.hosts, self.clumps)], source)
 
+    def band_images_and_clumps_on(self, source: Source, grid: Grid, groups, flux):
+        """(`band_images(source)`, the clumps' light [ny, nx, C] on one more `grid`: stamp
+        `groups` as `render.grouped_stamps_on` takes them, fluxes `flux` [N, C]), the clumps'
+        stamps made by one call (`UnlensedClumps.subgrid_light_and_grid`): unlensed models
+        with Sérsic clump stamps only."""
+        subgrids = first_band_per_subgrid(self.layouts)
+        clump_light, on_grid = self.clumps.subgrid_light_and_grid(source, subgrids, grid,
+                                                                  groups, flux)
+        return self._observed([self.hosts.subgrid_light(source, subgrids), clump_light],
+                              source), on_grid
+
     def _observed(self, lights, source: Source):
         """Band images from the renderers' sub-grid light (`subgrid_light`'s dicts)."""
         out = []
