@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -27,6 +26,7 @@ from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .builders import model_band
 from .cache import cache_enabled, cache_root, read_ahead
 from .errors import ConfigError
+from .model.clumps import UnlensedClumps
 from .model.renderer import first_band_per_subgrid
 from .source import Clumps, Disk, Sersic, Source, SpiralArms, Texture
 from .timing import StageClock
@@ -89,6 +89,9 @@ class Prepared:
     host_masses_msun: dict
     timings: dict
     programs: object = None         # programs folder, a programcache.ReadAhead of it, or None
+    # the textured disk's `render.disk_modulation_mean` (float64; None: no textured disk),
+    # computed once by `prepare` and given to every host-light program
+    modulation_mean: object = None
 
 
 def _cosmology(scene):
@@ -220,8 +223,9 @@ def _disk_brightness(baked, x, y):
     return render.disk_unit_brightness(disk, x, y, mean)
 
 
-def _sample_catalog(scene, bulge, disk, cosmology, programs):
-    """The clump catalogue (astropy Table) and the host masses left after clumps."""
+def _sample_catalog(scene, bulge, disk, cosmology, programs, modulation_mean):
+    """The clump catalogue (astropy Table) and the host masses left after clumps
+    (modulation_mean: the disk's, `_modulation_mean`)."""
     from . import population
     src = scene.source
     cl = src.clumps
@@ -246,10 +250,8 @@ def _sample_catalog(scene, bulge, disk, cosmology, programs):
     # programs kept in the cache folder (`_program`): a warm run neither traces nor lowers
     # them. The host's arrays are baked into the brightness, as a jit's closure has them.
     if host_name == "disk":
-        # one compiled quadrature, not hundreds of op-by-op dispatches
-        mean = _modulation_mean(programs, host_tree)
         brightness = _chunked_calls(programs, "population.disk_brightness", _disk_brightness,
-                                    (host_tree, mean))
+                                    (host_tree, modulation_mean))
         geo = host_tree.sersic
     else:
         brightness = _chunked_calls(programs, "population.sersic_brightness",
@@ -325,11 +327,12 @@ def _field(scene, lens, source, accuracy):
 
 
 def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, programs):
-    """The clump catalogue, the host masses left after clumps and the source with its
-    fluxes per band."""
+    """The clump catalogue, the host masses left after clumps, the source with its
+    fluxes per band and the disk's modulation mean (`_modulation_mean`)."""
     bulge_t, disk_t = _host_pytrees(scene, jnp.float64)
     with progress.stage("population"):
-        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology, programs)
+        mean = _modulation_mean(programs, disk_t)
+        table, host_masses = _sample_catalog(scene, bulge_t, disk_t, cosmology, programs, mean)
     with progress.stage("photometry"):
         src = scene.source
         bulge = disk = clumps = None
@@ -354,7 +357,7 @@ def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, 
                 jnp.asarray(np.asarray(table["q"], float)),
                 jnp.asarray(np.asarray(table["pa_rad"], float)))
         source = Source(bulge, disk, clumps).astype(dtype)
-    return table, host_masses, source
+    return table, host_masses, source, mean
 
 
 def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
@@ -380,13 +383,13 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
     # photometry (mostly XLA compiling, which leaves the GIL): on 2 cores the two overlap.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-psf") as pool:
         later_bands = pool.submit(_bands_stage, scene, accuracy, progress)
-        table, host_masses, source = _population_and_photometry(scene, filters, zps, cosmology,
-                                                                dtype, progress, programs)
+        table, host_masses, source, mean = _population_and_photometry(
+            scene, filters, zps, cosmology, dtype, progress, programs)
         with progress.stage("bands and PSFs (wait)"):
             bands = later_bands.result()
     if on_source is not None:
         on_source(Prepared(scene, source, table, None, bands, zps, None, None, accuracy, dtype,
-                           host_masses, progress.timings, programs))
+                           host_masses, progress.timings, programs, mean))
     with progress.stage("lens"):
         lens = build_lens(scene, cosmology)
         field = _field(scene, lens, source, accuracy)
@@ -401,7 +404,7 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
             field_arcsec=field, lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
             source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
-                    host_masses, progress.timings, programs)
+                    host_masses, progress.timings, programs, mean)
 
 
 # ------------------------------------------------------------------ running and writing
@@ -411,27 +414,25 @@ def _program_folder():
     return cache_root() / "programs" if cache_enabled() else None
 
 
-_MEANS = {}
-_MEANS_LOCK = threading.Lock()
-
-
 def _modulation_mean(programs, disk):
-    """`render.disk_modulation_mean(disk)` by a program of its own, computed once per process
-    for a disk: the population and every host-light program take it as an input (issue 20:
-    each held a copy of its quadrature, ~5k lines of optimised HLO)."""
+    """`render.disk_modulation_mean(disk)` by a program of its own (None: no textured disk).
+    `prepare` calls it once and keeps the value in `Prepared.modulation_mean`: the
+    population and every host-light program take it as an input (issue 20: each held a copy
+    of its quadrature, ~5k lines of optimised HLO)."""
     if disk is None or disk.texture is None:
         return None
     # the mean does not depend on the fluxes: one program and value for any bands
     disk = dataclasses.replace(disk, sersic=dataclasses.replace(
         disk.sersic, flux=jnp.zeros(1, jnp.result_type(disk.sersic.re_arcsec))))
-    leaves, tree = jax.tree_util.tree_flatten(disk)
-    key = (str(tree),) + tuple((np.asarray(x).dtype.str, np.asarray(x).tobytes())
-                               for x in leaves)
-    with _MEANS_LOCK:      # asked for by the main thread and the early launches
-        if key not in _MEANS:
-            _MEANS[key] = _program(programs, "population.disk_modulation_mean",
-                                   render.disk_modulation_mean, disk)
-        return _MEANS[key]
+    return _program(programs, "population.disk_modulation_mean", render.disk_modulation_mean,
+                    disk)
+
+
+def _mean_for(prep: "Prepared"):
+    """The modulation mean in the dtype of the scene's source (a float32 scene's host-light
+    programs stay float32)."""
+    mean = prep.modulation_mean
+    return None if mean is None else jnp.asarray(mean, prep.dtype)
 
 
 def _program(programs, name: str, fun, *args):
@@ -441,24 +442,33 @@ def _program(programs, name: str, fun, *args):
     return programcache.call(name, fun, *args, folder=programs)
 
 
-def _with_host_light(programs, model, source: Source):
+def _with_host_light(programs, model, source: Source, modulation_mean=None, extra_grids=()):
     """The model with its host's light per unit flux held (`SceneModel.with_host_light`):
     computed by a program of its own, or read back from the cache folder (`lightcache`:
     it depends on the host's geometry and the grids only). A source without host: the
-    model itself."""
+    model itself. modulation_mean: the textured disk's (`_mean_for`), None without one.
+    extra_grids (unlensed models only): more grids whose host light the same program makes
+    (`UnlensedHosts.unit_light`); returns (model, their light) then."""
     if source.bulge is None and source.disk is None:
-        return model
+        return (model, [(None, None)] * len(extra_grids)) if extra_grids else model
     # what the light depends on, and no more (the key hashes every array it is given):
     # the host renderer (the traced pixels), the sub-grids and the host
     subgrids = tuple(first_band_per_subgrid(model.layouts).items())
-    units = _kept_light(programs, "host_unit_light", _host_unit_light, model.hosts, subgrids,
-                        Source(source.bulge, source.disk, None),
-                        _modulation_mean(programs, source.disk))
-    return model.with_host_light(units)
+    args = (model.hosts, subgrids, Source(source.bulge, source.disk, None), modulation_mean)
+    if not extra_grids:
+        return model.with_host_light(_kept_light(programs, "host_unit_light", _host_unit_light,
+                                                 *args))
+    units = _kept_light(programs, "host_unit_light_and_grids", _host_unit_light_and_grids,
+                        *args, tuple(extra_grids))
+    return model.with_host_light(units[:len(subgrids)]), units[len(subgrids):]
 
 
 def _host_unit_light(hosts, subgrids, source: Source, modulation_mean=None):
     return hosts.unit_light(source, dict(subgrids), modulation_mean)
+
+
+def _host_unit_light_and_grids(hosts, subgrids, source: Source, modulation_mean, grids):
+    return hosts.unit_light(source, dict(subgrids), modulation_mean, extra_grids=grids)
 
 
 def _kept_light(programs, name: str, fun, *args):
@@ -567,18 +577,29 @@ def _launch_early(prep: Prepared, prog: _Progress, pool, out: Path) -> dict:
     model are not made yet: {"unlensed": future or None, "hr": (the high-resolution source
     as `_hr_source` gives it, its future) or None}."""
     scene = prep.scene
-    later_unl = pool.submit(_launch_unlensed, prep, prog) if scene.output.unlensed else None
-    hr = None
+    hr = sgrid = None
     if scene.output.hr:
         with prog.stage("high-resolution photometry"):
             hr = _hr_source(prep)
+            sgrid = _hr_grid(prep, hr[0])
         (out / "hr").mkdir(exist_ok=True)
+    # with both asked for, the unlensed bands' programs make the high-resolution source
+    # plane too (`_launch_unlensed`); with one of them, its own programs only
+    later_unl = (pool.submit(_launch_unlensed, prep, prog,
+                             None if hr is None else (hr[0], sgrid))
+                 if scene.output.unlensed else None)
     return {"unlensed": later_unl,
-            "hr": None if hr is None else (hr, pool.submit(_launch_hr, prep, prog, hr))}
+            "hr": None if hr is None else (hr, pool.submit(
+                _launch_hr, prep, prog, hr, sgrid, later_unl))}
 
 
-def _launch_unlensed(prep: Prepared, prog: _Progress):
-    """The unlensed band model and its images (launched, not waited for)."""
+def _launch_unlensed(prep: Prepared, prog: _Progress, hr=None):
+    """(the unlensed band model, its images, the high-resolution source plane's images or
+    None), launched, not waited for. hr: (the high-resolution source, its grid) or None.
+    With it, the same programs make the source plane (the same profiles on one more grid):
+    the host's light on it by the bands' host-light program, and with Sérsic clump stamps
+    their stamps by one call for both (`SceneModel.band_images_and_clumps_on`): two
+    programs and ~13k lines of optimised HLO fewer than apart (`_hr_source_plane`)."""
     with prog.stage("unlensed images (launch)"):
         # kept like the lensed model (`modelcache`): its PSF kernels and their transforms
         # are resampled and transformed again on every run otherwise (~0.5 s of CPU)
@@ -586,9 +607,39 @@ def _launch_unlensed(prep: Prepared, prog: _Progress):
             model_mod.build_model, prep.source, prep.bands, lens=None,
             folder=cache_root() / "models" if cache_enabled() else None,
             accuracy=prep.accuracy, dtype=prep.dtype)
-        return unl_model, _jit_call(prep.programs,
-                                    _with_host_light(prep.programs, unl_model, prep.source),
-                                    'band_images', prep.source)
+        src = prep.source
+        if hr is None or (src.bulge is None and src.disk is None and src.clumps is None):
+            return (unl_model, _jit_call(prep.programs, _with_host_light(
+                prep.programs, unl_model, src, _mean_for(prep)), 'band_images', src), None)
+        mono, sgrid = hr
+        hr_host = (None, None)
+        if src.bulge is not None or src.disk is not None:
+            held, (hr_host,) = _with_host_light(prep.programs, unl_model, src, _mean_for(prep),
+                                                (sgrid,))
+            bulge, disk = hr_host
+            if disk is not None:   # as `render.disk_image`: the values × the pixel area
+                scale = render.disk_image_scale(src.disk, sgrid)
+                disk = np.asarray(disk) if scale == 1.0 else np.asarray(disk) * scale
+            hr_host = (bulge, disk)
+        else:
+            held = unl_model
+        groups = _hr_groups(prep, mono, sgrid)
+        if groups and isinstance(unl_model.clumps, UnlensedClumps):
+            images, plane = _program(prep.programs, "unlensed_and_source_plane",
+                                     _unlensed_and_source_plane, held, src, mono, hr_host,
+                                     sgrid, prep.accuracy, groups)
+            return unl_model, images, plane
+        return (unl_model, _jit_call(prep.programs, held, 'band_images', src),
+                _program(prep.programs, "source_plane_images", _source_plane_images, mono,
+                         hr_host, sgrid, prep.accuracy, groups))
+
+
+def _unlensed_and_source_plane(model, source, mono, host, grid, accuracy, groups):
+    """(the unlensed band images, the source-plane images of `mono` on `grid`) as one
+    program: the clumps' stamps of both by one call."""
+    bands, clumps = model.band_images_and_clumps_on(source, grid, groups, mono.clumps.flux)
+    return bands, _source_plane_images(mono, host, grid, accuracy, (),
+                                       jnp.moveaxis(clumps, -1, 0))
 
 
 def _write_hr_unlensed_stage(prep, prog, out, hr, later_hr):
@@ -623,7 +674,7 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     unlensed, unl_model = [None] * len(scene.bands), None
     if later_unl is not None:
         with prog.stage("unlensed images"):
-            unl_model, unl_images = later_unl.result()
+            unl_model, unl_images, _ = later_unl.result()
             unlensed = [np.asarray(x) for x in unl_images]
     summary_bands, grids = {}, {}
     for k, b in enumerate(scene.bands):
@@ -674,7 +725,8 @@ def _render_bands(prep: Prepared, hr, later_noise=None):
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
     magnify = bool(table is not None and len(table) and model.lensed)
     clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
-                                      _with_host_light(prep.programs, model, prep.source),
+                                      _with_host_light(prep.programs, model, prep.source,
+                                                       _mean_for(prep)),
                                       prep.source, hr_fluxes, magnify)
     noisy = clean if later_noise is None else \
         later_noise.result()(jax.random.key(scene.seed), clean)
@@ -791,11 +843,10 @@ def _band_render(model, source, hr_fluxes, magnify: bool):
     lens-plane images (`lens_plane`) of the source with those fluxes, and with `magnify` the
     clumps' magnifications, as one program: the work they share (host light per unit flux at
     the traced pixels, rays, the clumps' stamps) is done once, and one program is compiled
-    and loaded instead of three."""
-    bands = model.noiseless(source)
-    hr = None if hr_fluxes is None else model.lens_plane(_with_fluxes(source, hr_fluxes))
-    mags = model.clump_magnifications(source, beside_band_images=True) if magnify else None
-    return bands, hr, mags
+    and loaded instead of three; within it, the clumps' stamps are made by one call for
+    all three (`SceneModel.noiseless_lens_plane_magnifications`)."""
+    return model.noiseless_lens_plane_magnifications(
+        source, None if hr_fluxes is None else _with_fluxes(source, hr_fluxes), magnify)
 
 
 def _fluxes(source: Source):
@@ -824,30 +875,44 @@ def _hr_source(prep: Prepared):
     return prep.source, list(prep.scene.band_names), "counts/s/pixel"
 
 
-def _launch_hr(prep: Prepared, prog: _Progress, hr):
-    """The high-resolution source-plane program, launched (not waited for)."""
+def _launch_hr(prep: Prepared, prog: _Progress, hr, sgrid, later_unl=None):
+    """(sgrid, the high-resolution source-plane images), launched (not waited for):
+    later_unl's (the `_launch_unlensed` submitted before it to the same pool), else by
+    programs of their own."""
     with prog.stage("high-resolution images (launch)"):
-        return _hr_source_plane(prep, hr[0])
+        if later_unl is not None:
+            return sgrid, later_unl.result()[2]
+        return _hr_source_plane(prep, hr[0], sgrid)
 
 
-def _hr_source_plane(prep: Prepared, mono):
-    scene = prep.scene
+def _hr_grid(prep: Prepared, mono):
+    """The high-resolution source-plane grid (at most 2047² pixels over the source)."""
     center, radius = model_mod.source_extent(mono, prep.accuracy.source_flux_fraction,
                                              prep.accuracy.stamp_flux_fraction)
     from .pixels import Grid
-    pix = max(scene.render.source_pixel_arcsec, 2 * radius / 2047)
-    sgrid = Grid.centered(center, radius, pix)
+    pix = max(prep.scene.render.source_pixel_arcsec, 2 * radius / 2047)
+    return Grid.centered(center, radius, pix)
+
+
+def _hr_groups(prep: Prepared, mono, sgrid):
+    """The source-plane clumps' stamp groups, their indices as tuples: static (baked in as
+    constants)."""
     groups = []
     if mono.clumps is not None and mono.clumps.count > 0:
         groups = render.stamp_groups(mono.clumps.re_arcsec, mono.clumps.n, sgrid.pixel_arcsec,
                                      flux_fraction=prep.accuracy.stamp_flux_fraction)
-    # the stamp groups' indices as tuples: static (baked in as constants), as before
-    groups = tuple((side, tuple(idx.tolist())) for side, idx in groups)
+    return tuple((side, tuple(idx.tolist())) for side, idx in groups)
+
+
+def _hr_source_plane(prep: Prepared, mono, sgrid):
+    """(sgrid, the source-plane images of `mono` on it, launched) by programs of their own
+    (no unlensed bands asked for)."""
+    groups = _hr_groups(prep, mono, sgrid)
     host = (None, None)
     if mono.bulge is not None or mono.disk is not None:
         host = _kept_light(prep.programs, "source_plane_host_light", _source_plane_host_light,
                            Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy,
-                           _modulation_mean(prep.programs, mono.disk))
+                           _mean_for(prep))
     return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
                            host, sgrid, prep.accuracy, groups)
 
@@ -906,9 +971,10 @@ def _source_plane_host_light(source: Source, grid, accuracy, modulation_mean=Non
     return bulge, disk
 
 
-def _source_plane_images(source: Source, host, grid, accuracy, groups):
+def _source_plane_images(source: Source, host, grid, accuracy, groups, clumps=None):
     """Pixel-integrated source-plane images [B, ny, nx] (counts or μJy per pixel); host:
-    `_source_plane_host_light` of the source."""
+    `_source_plane_host_light` of the source; clumps: the clumps' images [B, ny, nx], made
+    before, or None (made here from `groups`)."""
     img = 0.0
     bulge, disk = host
     if bulge is not None:
@@ -916,7 +982,9 @@ def _source_plane_images(source: Source, host, grid, accuracy, groups):
     if disk is not None:
         img = img + source.disk.sersic.flux[:, None, None] * disk[None]
     cl = source.clumps
-    if cl is not None and cl.count > 0:
+    if clumps is not None:
+        img = img + clumps
+    elif cl is not None and cl.count > 0:
         img = img + jnp.moveaxis(render.clumps_image(cl, grid, groups, cl.flux,
                                                      order=accuracy.source_order,
                                                      core=accuracy.exact_core), -1, 0)

@@ -265,3 +265,27 @@ def test_magnifications_beside_band_images_are_the_standalone_ones(cluster_hybri
     np.testing.assert_array_equal(np.asarray(mags), alone)
     only = eqx.filter_jit(lambda m, s: m.band_images(s))(hyb, src)
     np.testing.assert_array_equal(np.asarray(images[0]), np.asarray(only[0]))
+
+
+def test_band_render_together_matches_each_alone(cluster_hybrid):
+    """`noiseless_lens_plane_magnifications` (one stamp call and one ray-traced pass for
+    the band images, the lens plane of a source with other fluxes and the magnifications,
+    as the `simulate` band render uses it) gives what `noiseless`, `lens_plane` and
+    `clump_magnifications` give alone, for linearised and ray-traced clumps."""
+    src, bands, kw, hyb = cluster_hybrid
+    flux = src.clumps.flux
+    other = Source(clumps=eqx.tree_at(lambda c: c.flux, src.clumps,
+                                      jnp.concatenate([flux * 3.0, flux[:, :1] * 0.5], axis=1)))
+    clean, plane, mags = eqx.filter_jit(
+        lambda m, s, o: m.noiseless_lens_plane_magnifications(s, o, True))(hyb, src, other)
+    alone = eqx.filter_jit(lambda m, s, o: (m.noiseless(s), m.lens_plane(o),
+                                            m.clump_magnifications(s)))(hyb, src, other)
+    for a, b in zip(clean, alone[0]):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12,
+                                   atol=1e-12 * float(np.max(np.abs(b))))
+    assert plane.shape == alone[1].shape
+    np.testing.assert_allclose(np.asarray(plane), np.asarray(alone[1]), rtol=1e-12,
+                               atol=1e-12 * float(np.max(np.abs(alone[1]))))
+    np.testing.assert_allclose(np.asarray(mags), np.asarray(alone[2]), rtol=1e-12)
+    none = eqx.filter_jit(lambda m, s: m.noiseless_lens_plane_magnifications(s))(hyb, src)
+    assert none[1] is None and none[2] is None

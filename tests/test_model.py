@@ -252,6 +252,35 @@ def test_noise_mean_and_variance():
     assert np.array_equal(np.asarray(draws), np.asarray(again))
 
 
+@pytest.mark.parametrize("gaussian_above", [None, 1e3])
+def test_band_noise_one_sampler_independent_of_other_bands(gaussian_above):
+    """Bands of different shapes share one sampler (chunks of a fixed size); a band's
+    noise is the same bits whichever bands are simulated with it, and photon noise."""
+    rng = np.random.default_rng(4)
+    shapes = ((31, 40), (150, 130), (17, 9))
+    images = [jnp.asarray(rng.gamma(0.7, 30.0, size=s)) for s in shapes]
+    names, t = ("F105W", "F200W", "F444W"), (500.0, 1000.0, 2000.0)
+    key = jax.random.key(7)
+    together = noise.add_photon_noise_bands(key, images, names, t, gaussian_above)
+    assert [x.shape for x in together] == list(shapes)
+    for sub in ([0], [2], [1, 2], [2, 0]):
+        alone = noise.add_photon_noise_bands(key, [images[k] for k in sub],
+                                             [names[k] for k in sub], [t[k] for k in sub],
+                                             gaussian_above)
+        for j, k in enumerate(sub):
+            assert np.array_equal(np.asarray(alone[j]), np.asarray(together[k]))
+    again = noise.add_photon_noise_bands(key, images, names, t, gaussian_above)
+    assert all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(again, together))
+    # photon noise: (draw - mean)² / variance averages to 1
+    lam = np.concatenate([np.ravel(np.asarray(im) * tk) for im, tk in zip(images, t)])
+    counts = np.concatenate([np.ravel(np.asarray(d) * tk) for d, tk in zip(together, t)])
+    assert abs(np.mean((counts - lam) ** 2 / np.maximum(lam, 1e-9)) - 1) < 0.05
+    # one sampler, however many image shapes: a third shape adds no loop
+    program = jax.jit(lambda k, im: noise.add_photon_noise_bands(k, im, names, t, gaussian_above))
+    assert (program.lower(key, images).as_text().count("stablehlo.while")
+            == program.lower(key, images[:2]).as_text().count("stablehlo.while"))
+
+
 # ------------------------------------------------------------------ stages in the compiled model
 
 

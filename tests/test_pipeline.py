@@ -188,3 +188,39 @@ def test_noise_program_draws_what_observe_draws():
     assert len(drawn) == len(noisy)
     for a, b in zip(noisy, drawn):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_unlensed_programs_make_the_high_resolution_source_plane():
+    """With unlensed and high-resolution outputs both asked for, the unlensed bands'
+    programs also make the high-resolution source plane (host light and clump stamps on
+    one more grid: two programs fewer): the images of the source plane's own programs."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from clumpylen_jax import scene as sc
+    from clumpylen_jax.model.clumps import UnlensedClumps
+    from clumpylen_jax.source import Clumps, Source
+
+    prep = pipeline.prepare(sc.load_scene("single-sersic"))
+    # the bulge with three clumps (two stamp sizes) around it
+    nb = prep.source.bulge.flux.shape[0]
+    clumps = Clumps(jnp.asarray([[0.05, -0.02], [-0.1, 0.07], [0.0, 0.12]]),
+                    jnp.full((3, nb), 0.3) * jnp.asarray([[1.0], [2.0], [0.5]]),
+                    jnp.asarray([0.01, 0.03, 0.005]), jnp.asarray([1.0, 1.5, 0.8]),
+                    jnp.asarray([0.7, 0.9, 0.5]), jnp.asarray([0.3, 1.0, 2.0]))
+    prep = dataclasses.replace(prep, source=Source(prep.source.bulge, None, clumps))
+    mono = pipeline._hr_source(prep)[0]
+    sgrid = pipeline._hr_grid(prep, mono)
+    assert len(pipeline._hr_groups(prep, mono, sgrid)) >= 1
+    unl, bands, plane = pipeline._launch_unlensed(prep, pipeline._Progress(False, 1),
+                                                  (mono, sgrid))
+    assert isinstance(unl.clumps, UnlensedClumps)       # the one-stamp-call path
+    _, alone = pipeline._hr_source_plane(prep, mono, sgrid)
+    _, bands_alone, none = pipeline._launch_unlensed(prep, pipeline._Progress(False, 1))
+    assert none is None and plane.shape == alone.shape
+    np.testing.assert_allclose(np.asarray(plane), np.asarray(alone), rtol=1e-12,
+                               atol=1e-14 * float(np.max(np.abs(alone))))
+    for a, b in zip(bands, bands_alone):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12,
+                                   atol=1e-14 * float(np.max(np.abs(b))))

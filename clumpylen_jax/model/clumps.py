@@ -5,6 +5,7 @@ source-plane grid and, away from caustics, linearised (`"grid"`, `"hybrid"`)."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
 import equinox as eqx
@@ -61,6 +62,22 @@ class UnlensedClumps(Renderer):
                              in zip(self.sides[k], self.index[k]))) for g, k in subgrids.items()]
         images = render.clumps_images(cl, targets, cl.flux, order=self.order, core=self.core)
         return {g: BandStack([img], cl.flux.dtype) for (g, _), img in zip(targets, images)}
+
+    def subgrid_light_and_grid(self, source: Source, subgrids, grid: Grid, groups, flux):
+        """(`subgrid_light(source, subgrids)`, the clumps' light [ny, nx, C] on one more
+        `grid` with these stamp `groups` and fluxes `flux` [N, C] (0.0 without groups)),
+        their stamps made by one call: one exact-pixel kernel for both (the high-resolution
+        source plane beside the unlensed bands)."""
+        cl = source.clumps
+        if cl is None or cl.count == 0:
+            return {}, 0.0
+        targets = [(g, tuple((side, idx, strip) for (side, strip), idx
+                             in zip(self.sides[k], self.index[k]))) for g, k in subgrids.items()]
+        stamps = render.grouped_stamps_on(cl, targets + [(grid, groups)], order=self.order,
+                                          core=self.core)
+        light = {g: BandStack([render.scatter_grouped(st, cl.flux, g)], cl.flux.dtype)
+                 for st, (g, _) in zip(stamps, targets)}
+        return light, render.scatter_grouped(stamps[-1], flux, grid)
 
     def magnifications(self, source: Source):
         cl = source.clumps
@@ -372,10 +389,12 @@ class LensedClumps(Renderer):
     order: int = eqx.field(static=True)
     core: int = eqx.field(static=True)
 
-    def _stamps(self, source: Source, grids):
+    def _stamps(self, source: Source, grids, flux_sources=None):
         """Linearised clump images on each (grid, sides, index) of `grids` ([ny, nx, B] counts/s
         per pixel each; [] without linearised clumps) and the ray-traced clumps' stamps on the
-        source grid (None without them), made in one call: one exact-pixel kernel for all."""
+        source grid (None without them), made in one call: one exact-pixel kernel for all.
+        flux_sources: per entry of `grids`, the source (same geometry) whose clump fluxes
+        that image takes; None: `source` for all."""
         cl = source.clumps
         traced = self.traced is not None and cl is not None and cl.count > 0
         lin = (lensed_clumps(cl, self.linearised.images)
@@ -391,9 +410,13 @@ class LensedClumps(Renderer):
             targets.append((self.traced.grid, tuple((side, idx + k) for side, idx
                                                     in self.traced.groups())))
         stamps = render.grouped_stamps_on(both, targets, order=self.order, core=self.core)
+        if lin is not None and flux_sources is not None:
+            fluxes = [lensed_clumps(s.clumps, self.linearised.images).flux for s in flux_sources]
+        else:
+            fluxes = [None if lin is None else lin.flux] * len(targets)
         images = ([] if lin is None else
-                  [render.scatter_grouped(st, lin.flux, g) for st, (g, _)
-                   in zip(stamps, targets)])
+                  [render.scatter_grouped(st, f, g) for st, (g, _), f
+                   in zip(stamps, targets, fluxes)])
         return images, ([(st, i0, j0, idx - k) for st, i0, j0, idx in stamps[-1]]
                         if traced else None)
 
@@ -432,6 +455,55 @@ class LensedClumps(Renderer):
         if win is not None:
             image = self.plane.add_window(image, win)
         return image + images[0] if images else image
+
+    def light_lens_plane_and_magnifications(self, source: Source, subgrids, plane_source,
+                                            image, magnify: bool):
+        """(`subgrid_light(source, subgrids)`, `add_lens_plane(plane_source, image)` or None
+        without plane_source, `magnifications(source)` or None without `magnify`), made
+        together (plane_source: the source with other fluxes, same geometry): one stamp call
+        for the sub-grids and the lens plane, whose ray-traced stamps serve all three, and
+        one ray-traced pass for the bands' and the lens plane's fluxes (issue 20: each was a
+        copy of its own in the band render's program)."""
+        lin = self.linearised
+        targets = [] if lin is None else [(g, lin.sides[k], lin.index[k])
+                                          for g, k in subgrids.items()]
+        sources = [source] * len(targets)
+        on_plane = plane_source is not None and lin is not None and bool(lin.hr_sides)
+        if on_plane:
+            targets.append((self.plane.grid, lin.hr_sides, lin.hr_index))
+            sources.append(plane_source)
+        images, stamps = self._stamps(source, targets, sources)
+        cl = source.clumps
+        win = plane_win = None
+        if cl is not None and cl.count > 0 and self.traced is not None:
+            # the bands' and the lens plane's fluxes as one set of channels
+            nb = n_bands(source)
+            flux = cl.flux if plane_source is None else jnp.concatenate(
+                [cl.flux, plane_source.clumps.flux.astype(cl.flux.dtype)], axis=1)
+            both = Source(None, None, dataclasses.replace(cl, flux=flux))
+            vals = self.traced.ray_values(both, self.plane, stamps) * self.plane.pixel_area
+            win_all = self.plane.window_image(vals)
+            win, plane_win = win_all[..., :nb], win_all[..., nb:]
+        out = {}
+        lin_images = dict(zip(subgrids, images[:len(subgrids)] if lin is not None else []))
+        for g, k in subgrids.items():
+            parts = ([] if win is None else [self.plane.window_to_subgrid(win, k, g.shape)])
+            parts += [lin_images[g]] if g in lin_images else []
+            if parts:
+                out[g] = BandStack(parts)
+        plane = None
+        if plane_source is not None:
+            plane = image if plane_win is None else self.plane.add_window(image, plane_win)
+            plane = plane + images[-1] if on_plane else plane
+        mags = None
+        if magnify and cl is not None:
+            mags = jnp.zeros(cl.count, cl.re_arcsec.dtype)
+            if lin is not None:
+                mags = mags.at[lin.images.clump_index].add(
+                    image_magnifications(lin.images, mags.dtype))
+            if self.traced is not None:
+                mags = self.traced.set_magnifications(mags, cl, self.plane, stamps)
+        return out, plane, mags
 
     def magnifications(self, source: Source, subgrids=None):
         """Magnification [N] of each clump within the field (light-weighted over its stamp).

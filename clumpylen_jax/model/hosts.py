@@ -43,16 +43,18 @@ class UnlensedHosts(Renderer):
                        if accuracy.thin_strip else (False, False) for lay in layouts)
         return cls(strips, accuracy.source_order, accuracy.exact_core)
 
-    def unit_light(self, source: Source, subgrids, modulation_mean=None):
+    def unit_light(self, source: Source, subgrids, modulation_mean=None, extra_grids=()):
         """Per sub-grid of `subgrids` (in its order): the unit-flux images (bulge, disk) on it,
         None for a component the source lacks; the disk's as `render.disk_image_values`
         (`subgrid_light` scales it, so that held values give the same bits).
         modulation_mean: the disk's `render.disk_modulation_mean`, computed before (a
-        program of its own), or None (computed here)."""
+        program of its own), or None (computed here). extra_grids: more grids (no exact
+        strip), their images after the sub-grids' (the high-resolution source plane: one
+        program for both)."""
         # every sub-grid at once: one compiled profile and one exact-pixel kernel per
         # component, not one per sub-grid
-        grids = list(subgrids)
-        strips = [self.strips[k] for k in subgrids.values()]
+        grids = list(subgrids) + list(extra_grids)
+        strips = [self.strips[k] for k in subgrids.values()] + [(False, False)] * len(extra_grids)
         bulge = disk = [None] * len(grids)
         if source.bulge is not None:
             bulge = render.sersic_images(source.bulge, grids, order=self.order, core=self.core,

@@ -98,7 +98,22 @@ class SceneModel(eqx.Module):
     def band_images(self, source: Source):
         """PSF-convolved source light per band (tuple of [ny, nx], counts/s per pixel, no sky)."""
         subgrids = first_band_per_subgrid(self.layouts)
-        lights = [r.subgrid_light(source, subgrids) for r in (self.hosts, self.clumps)]
+        return self._observed([r.subgrid_light(source, subgrids)
+                               for r in (self.hosts, self.clumps)], source)
+
+    def band_images_and_clumps_on(self, source: Source, grid: Grid, groups, flux):
+        """(`band_images(source)`, the clumps' light [ny, nx, C] on one more `grid`: stamp
+        `groups` as `render.grouped_stamps_on` takes them, fluxes `flux` [N, C]), the clumps'
+        stamps made by one call (`UnlensedClumps.subgrid_light_and_grid`): unlensed models
+        with Sérsic clump stamps only."""
+        subgrids = first_band_per_subgrid(self.layouts)
+        clump_light, on_grid = self.clumps.subgrid_light_and_grid(source, subgrids, grid,
+                                                                  groups, flux)
+        return self._observed([self.hosts.subgrid_light(source, subgrids), clump_light],
+                              source), on_grid
+
+    def _observed(self, lights, source: Source):
+        """Band images from the renderers' sub-grid light (`subgrid_light`'s dicts)."""
         out = []
         for k, det in enumerate(self.layouts):
             g = det.sub_grid
@@ -124,6 +139,32 @@ class SceneModel(eqx.Module):
                                              [det.exptime_s for det in self.layouts],
                                              self.accuracy.gaussian_noise_above)
         return noisy, clean, self.variances(clean)
+
+    def noiseless_lens_plane_magnifications(self, source: Source, plane_source=None,
+                                            magnify: bool = False):
+        """(`noiseless(source)`, `lens_plane(plane_source)` or None without plane_source,
+        `clump_magnifications(source)` or None without `magnify`) in one computation:
+        in a lensed scene with ray-traced or linearised clumps, one stamp call and one
+        ray-traced pass serve all three (`LensedClumps.light_lens_plane_and_magnifications`);
+        otherwise each is computed as alone (XLA merges what they share)."""
+        if not isinstance(self.clumps, LensedClumps):
+            clean = self.noiseless(source)
+            plane = None if plane_source is None else self.lens_plane(plane_source)
+            mags = self.clump_magnifications(source, beside_band_images=True) if magnify \
+                else None
+            return clean, plane, mags
+        subgrids = first_band_per_subgrid(self.layouts)
+        plane = None
+        if plane_source is not None:
+            plane = jnp.zeros(self.plane.grid.shape + (n_bands(plane_source),),
+                              self.plane.dtype)
+            plane = self.hosts.add_lens_plane(plane_source, plane)
+        clump_light, plane, mags = self.clumps.light_lens_plane_and_magnifications(
+            source, subgrids, plane_source, plane, magnify)
+        images = self._observed([self.hosts.subgrid_light(source, subgrids), clump_light],
+                                source)
+        clean = tuple(det.with_sky(img) for img, det in zip(images, self.layouts))
+        return clean, None if plane is None else jnp.moveaxis(plane, -1, 0), mags
 
     def lens_plane(self, source: Source):
         """High-resolution lens-plane images [B, ny, nx], counts/s per lens-plane pixel."""
