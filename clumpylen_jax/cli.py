@@ -269,11 +269,23 @@ def _cmd_fit_observations(args) -> int:
     if os.path.exists(out) and not os.path.isdir(out):
         raise ConfigError("--out", args.out, "a directory (this path is a file)")
     say = None if args.quiet else (lambda m: print(m, file=sys.stderr))
+    _enable_fit_cache(args)
     fit, table, host, files = fit_observation_scene(scene, out, progress=say)
     if not args.quiet:
         print(f"wrote {out} ({', '.join(os.path.basename(str(f)) for f in files)}); "
               f"{fit.n_clumps} clumps, {'converged' if fit.success else 'NOT converged'}")
     return EXIT_OK
+
+
+def _enable_fit_cache(args) -> None:
+    """JAX's persistent compilation cache for a fit, as for `simulate` (`cache.py`): a second
+    fit of the same cutout and settings loads its programs instead of compiling them
+    (~24 s of a cold S1063 fit). After the inputs are checked, before anything compiles."""
+    from .cache import enable_compilation_cache
+
+    if args.no_cache:
+        os.environ["CLUMPYLEN_NO_CACHE"] = "1"
+    enable_compilation_cache()
 
 
 def _cmd_fit(args) -> int:
@@ -306,6 +318,7 @@ def _cmd_fit(args) -> int:
         if not np.any(usable):
             raise ConfigError(f"--image {band}", images[band],
                               "an image with usable pixels (all are NaN or have zero variance)")
+    _enable_fit_cache(args)
     prep = prepare(s)
     shapes = {lay.name: lay.grid.shape for lay in prep.model.layouts}
     for band, img in data.items():
@@ -499,6 +512,8 @@ def _add_run_commands(sub) -> None:
                    help="map (default), emcee or nuts")
     q.add_argument("--seed", type=int, help="override the scene's seed (clump catalogue)")
     q.add_argument("--quiet", "-q", action="store_true", help="no output")
+    q.add_argument("--no-cache", action="store_true",
+                   help="neither read nor write compiled programs (same as CLUMPYLEN_NO_CACHE=1)")
     q.set_defaults(func=_cmd_fit)
 
     q = sub.add_parser("study", help="run a study (many samples, injections or fits) on Dask; "

@@ -117,3 +117,33 @@ def test_cli_cache_on_off_same_images_and_prints_the_split(capsys, monkeypatch, 
     assert any((tmp_path / "cache" / "light").glob("*.pkl"))
     assert main(["simulate", "single-sersic", "--out", str(tmp_path / "again")]) == 0
     assert _fits_digest(tmp_path / "again") == _fits_digest(tmp_path / "on")
+
+
+def test_cli_fit_keeps_its_programs_and_no_cache_keeps_none(monkeypatch, tmp_path,
+                                                            restore_jax_cache):
+    """`clumpylen fit` of an observation uses the persistent compilation cache as `simulate`
+    does: the first fit writes programs, a second loads them and gives the same numbers bit
+    for bit, and --no-cache writes nothing and also gives the same numbers."""
+    import json
+
+    from astropy.table import Table
+
+    from _cutouts import write_cutout
+    y, x = np.mgrid[:24, :24] - 11.5
+    sci = 50.0 * np.exp(-np.hypot(x, y) / 3.0) + np.random.default_rng(4).normal(size=(24, 24))
+    image = write_cutout(tmp_path / "c.fits", sci, np.ones_like(sci), extra={"PIXSCALE": 0.03})
+    scene = tmp_path / "s.toml"
+    scene.write_text(f'[scene]\nname = "t"\n\n[[observations]]\nfilter = "F150W"\n'
+                     f'image = "{image}"\n\n[fit]\nclumps = "none"\n')
+    monkeypatch.delenv("CLUMPYLEN_NO_CACHE", raising=False)
+    runs = {}
+    for name, cache_dir, extra in (("first", "cache", []), ("second", "cache", []),
+                                   ("off", "cache_off", ["--no-cache"])):
+        monkeypatch.setenv("CLUMPYLEN_CACHE", str(tmp_path / cache_dir))
+        assert main(["fit", str(scene), "--out", str(tmp_path / name), "-q", *extra]) == 0
+        runs[name] = (Table.read(tmp_path / name / "fit.ecsv").meta,    # the host, with errors
+                      json.loads((tmp_path / name / "summary.json").read_text())["chi2_per_dof"])
+        if name == "first":
+            assert any((tmp_path / "cache" / "jax").iterdir())     # programs were kept
+    assert not (tmp_path / "cache_off" / "jax").exists()
+    assert runs["first"] == runs["second"] == runs["off"], runs
