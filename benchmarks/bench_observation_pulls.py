@@ -46,7 +46,7 @@ clumpylen_jax.enable_float64()  # float64: the caller's choice
 import jax.numpy as jnp  # noqa: E402
 
 from clumpylen_jax.cli import main as cli  # noqa: E402
-from clumpylen_jax.observations import FitOptions  # noqa: E402
+from clumpylen_jax.observations import FitOptions, write_cutout  # noqa: E402
 from clumpylen_jax.observations.fit import make_model_factory  # noqa: E402
 from clumpylen_jax.observations.frame import BandFrame, celestial_wcs, fit_frame  # noqa: E402
 from clumpylen_jax.observations.units import zeropoint_mjy_sr, zeropoint_photflam  # noqa: E402
@@ -90,18 +90,6 @@ def _psf_file(path, pixel_arcsec, size=15):
     h = fits.Header()
     h["PIXSCALE"] = pixel_arcsec
     fits.PrimaryHDU(np.exp(-(x**2 + y**2) / (2 * PSF_SIGMA_PIX**2)), h).writeto(path, overwrite=True)
-    return str(path)
-
-
-def _write(path, sci, header, *, err=None, wht=None, extra=None):
-    hdr = header.copy()
-    for k, v in (extra or {}).items():
-        hdr[k] = v
-    hdus = [fits.PrimaryHDU(), fits.ImageHDU(np.asarray(sci, np.float32), hdr, name="SCI")]
-    for name, data in (("ERR", err), ("WHT", wht)):
-        if data is not None:
-            hdus.append(fits.ImageHDU(np.asarray(data, np.float32), hdr, name=name))
-    fits.HDUList(hdus).writeto(path, overwrite=True)
     return str(path)
 
 
@@ -167,12 +155,13 @@ def _mock(kind, seed, work: Path):
         s2 = PSF_SIGMA_PIX**2 + (t["re"] / 1.1774 / pix) ** 2
         snr.append(flux[:, k] / (sigma * np.sqrt(4 * math.pi * s2)))
         if kind == "jwst":
-            path = _write(work / f"{name}_i2d.fits", sci, h, err=np.full(shape, sigma),
-                          extra={"BUNIT": "MJy/sr", "PIXAR_SR": (pix / 206264.806) ** 2})
+            path = write_cutout(work / f"{name}_i2d.fits", sci, np.full(shape, sigma), header=h,
+                                bunit="MJy/sr", extra={"PIXAR_SR": (pix / 206264.806) ** 2})
         else:
-            path = _write(work / f"{name}_drz.fits", sci, h, wht=np.full(shape, sigma**-2),
-                          extra={"BUNIT": "ELECTRONS/S", "EXPTIME": HST_EXPTIME_S,
-                                 "PHOTFLAM": ACS[name][0], "PHOTPLAM": ACS[name][1]})
+            path = write_cutout(work / f"{name}_drz.fits", sci, header=h, bunit="ELECTRONS/S",
+                                wht=np.full(shape, sigma**-2),
+                                extra={"EXPTIME": HST_EXPTIME_S, "PHOTFLAM": ACS[name][0],
+                                       "PHOTPLAM": ACS[name][1]})
         lines.append(f'[[observations]]\nfilter = "{name}"\ninstrument = "{inst}"\n'
                      f'image = "{path}"\npsf = "{work / f"psf_{name}.fits"}"\n')
     lines.append('[fit]\nclumps = "auto"\nclump_n = 1.0\n')
