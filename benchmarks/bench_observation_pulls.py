@@ -190,6 +190,13 @@ def _pulls(true: Table, fit: Table, names, pix):
             p = lambda col, tv: float((fit[col][j] - tv) / fit[f"{col}_err"][j])  # noqa: E731
             for n in names:
                 row[f"pull_mag_{n}"] = p(f"mag_{n}", true[f"mag_{n}"][i])
+            # the colour (first band − second): what multiple images of one clump must share
+            # (lensing is achromatic); σ from the two magnitudes' errors in quadrature, as a
+            # reader of fit.ecsv would combine them (their covariance is not in the table)
+            a, b = names[0], names[1]
+            row["pull_colour"] = float(((fit[f"mag_{a}"][j] - fit[f"mag_{b}"][j])
+                                        - (true[f"mag_{a}"][i] - true[f"mag_{b}"][i]))
+                                       / math.hypot(fit[f"mag_{a}_err"][j], fit[f"mag_{b}_err"][j]))
             row["pull_re"] = p("re_arcsec", true["re_arcsec"][i])
             row["pull_ra"] = float((fit["ra_deg"][j] - true["ra_deg"][i]) * cosd * 3600
                                    / (fit["ra_deg_err"][j] * cosd * 3600))
