@@ -406,8 +406,8 @@ def test_rows_fisher_is_the_full_models():
     f_all = np.asarray(fisher_matrix(model, param, param.physical_vector(u), data, active=active))
     f_ref = f_all[np.ix_(entries, entries)]
     # in units of each pair's √(F_ii F_jj) (the correlation scale): entries that vanish
-    # analytically (a host flux against a clump position) are rounding either way, ~1e-14
-    # against a diagonal of 1681, and differ in the last digits between the two routes
+    # analytically (the background against a clump's position: a shift's derivative image
+    # sums to zero) are rounding either way, ~1e-14 against a diagonal of 1681
     d = np.sqrt(np.diag(f_ref))
     assert np.all(d > 0)
     assert np.allclose(f_rows / np.outer(d, d), f_ref / np.outer(d, d), rtol=0, atol=1e-10)

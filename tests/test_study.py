@@ -246,7 +246,7 @@ npixels = 1
     k = int(np.argmax(comp >= 0.5))
     w = (0.5 - comp[k - 1]) / (comp[k] - comp[k - 1])
     snr50 = np.exp((1 - w) * np.log(snr[k - 1]) + w * np.log(snr[k]))
-    # measured: 2.8 (647784b), 2.46 since the noise keys changed (one position of 16 at S/N
+    # measured: 2.71 (647784b), 2.46 since the noise keys changed (one position of 16 at S/N
     # 3.1 detected more: 9 → 10); the marginal Fisher S/N (R_e and centre free) is below a
     # detection's, which knows the clump's shape: the 50 % point sits under 5, within 2.5×
     assert 2.0 < snr50 < 10, snr50
