@@ -55,7 +55,7 @@ from clumpylen_jax.photometry import AB_ZERO_UJY, band_fluxes_ujy  # noqa: E402
 from clumpylen_jax.psf import load_psf_fits  # noqa: E402
 from clumpylen_jax.source import Clumps, Sersic, Source  # noqa: E402
 
-from _common import RESULTS, machine  # noqa: E402
+from _common import machine, write_json, write_text  # noqa: E402
 
 RA0, DEC0 = 64.038142, -24.067472
 Z = 2.0
@@ -275,8 +275,7 @@ def main():
     payload = dict(machine=machine(), n_clumps=N_CLUMPS, match_pix=MATCH_PIX, results=results,
                    summary=dict(by_format=by_kind, all=_summary(allrows), snr_above_10=snr10),
                    wall_s=time.time() - t_all)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{args.name}.json").write_text(json.dumps(payload, indent=1))
+    write_json(args.name, payload)
     md = [f"# `clumpylen fit` pulls on mocks in real-product formats (issue 17)\n",
           f"{machine()['date']}; {N_CLUMPS} clumps per mock, z = {Z}, clumps = \"auto\" (no truth), "
           f"matched within {MATCH_PIX} finest pixels; {time.time() - t_all:.0f} s wall in all.\n",
@@ -304,7 +303,7 @@ def main():
         for k, s in summ.items():
             md.append(f"| {kind} | {k[5:]} | {s['n']} | {s['mean']:+.2f} | {s['std']:.2f} | "
                       f"{s['within1']:.2f} | {s['within2']:.2f} | {s['within3']:.2f} |")
-    (RESULTS / f"{args.name}.md").write_text("\n".join(md) + "\n")
+    write_text(f"{args.name}.md", "\n".join(md) + "\n")
     print("\n".join(md))
 
 

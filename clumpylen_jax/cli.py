@@ -169,8 +169,6 @@ def _cmd_simulate(args) -> int:
     # Check the overrides, the output directory, the files and the memory the scene
     # needs before any computation.
     resolved = sc.with_overrides(s, seed=args.seed, bands=bands, noise=noise)
-    if args.no_cache:   # the one switch (`cache.py`): compiled programs, PSFs, rays
-        os.environ["CLUMPYLEN_NO_CACHE"] = "1"
     from .cache import read_ahead
     # the last run's programs load in the background while the pipeline is imported
     # and prepared (a second run's largest single wait otherwise)
@@ -269,23 +267,13 @@ def _cmd_fit_observations(args) -> int:
     if os.path.exists(out) and not os.path.isdir(out):
         raise ConfigError("--out", args.out, "a directory (this path is a file)")
     say = None if args.quiet else (lambda m: print(m, file=sys.stderr))
-    _enable_fit_cache(args)
+    from .cache import enable_compilation_cache
+    enable_compilation_cache()   # a second fit of these cutouts loads its programs (cache.py)
     fit, table, host, files = fit_observation_scene(scene, out, progress=say)
     if not args.quiet:
         print(f"wrote {out} ({', '.join(os.path.basename(str(f)) for f in files)}); "
               f"{fit.n_clumps} clumps, {'converged' if fit.success else 'NOT converged'}")
     return EXIT_OK
-
-
-def _enable_fit_cache(args) -> None:
-    """JAX's persistent compilation cache for a fit, as for `simulate` (`cache.py`): a second
-    fit of the same cutout and settings loads its programs instead of compiling them
-    (~24 s of a cold S1063 fit). After the inputs are checked, before anything compiles."""
-    from .cache import enable_compilation_cache
-
-    if args.no_cache:
-        os.environ["CLUMPYLEN_NO_CACHE"] = "1"
-    enable_compilation_cache()
 
 
 def _cmd_fit(args) -> int:
@@ -318,7 +306,8 @@ def _cmd_fit(args) -> int:
         if not np.any(usable):
             raise ConfigError(f"--image {band}", images[band],
                               "an image with usable pixels (all are NaN or have zero variance)")
-    _enable_fit_cache(args)
+    from .cache import enable_compilation_cache
+    enable_compilation_cache()   # after the inputs are checked, before anything compiles
     prep = prepare(s)
     shapes = {lay.name: lay.grid.shape for lay in prep.model.layouts}
     for band, img in data.items():
@@ -551,6 +540,8 @@ def main(argv: list[str] | None = None) -> int:
 
         enable_float64()  # the command computes in float64 unless a scene asks for float32
     saved_switch = os.environ.get("CLUMPYLEN_NO_CACHE")  # --no-cache sets it for this command only
+    if getattr(args, "no_cache", False):   # the one switch (`cache.py`): programs, PSFs, rays
+        os.environ["CLUMPYLEN_NO_CACHE"] = "1"
     try:
         return args.func(args)
     except (ConfigError, _UserError) as exc:

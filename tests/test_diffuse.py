@@ -83,7 +83,7 @@ def _arc_cutout(tmp_path, n=64, pix=0.03, sigma=0.002, seed=1):
     FWHM 0.09″), Gaussian noise."""
     from scipy.ndimage import gaussian_filter
 
-    from _cutouts import write_cutout
+    from clumpylen_jax.observations import write_cutout
     from test_observations import gaussian_psf_file
     rng = np.random.default_rng(seed)
     y, x = (np.mgrid[:n, :n] - (n - 1) / 2) * pix

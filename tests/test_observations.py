@@ -16,11 +16,11 @@ from astropy.io import fits
 import clumpylen_jax  # noqa: F401  (float64)
 from clumpylen_jax.cli import main
 from clumpylen_jax.errors import ConfigError
-from clumpylen_jax.observations import ObservationSpec, read_observation, resolve_units
+from clumpylen_jax.observations import (ObservationSpec, read_observation, resolve_units,
+                                        write_cutout)
 from clumpylen_jax.observations.config import parse_observation_scene
 from clumpylen_jax.observations.frame import fit_frame
 from clumpylen_jax.observations.units import zeropoint_mjy_sr, zeropoint_photflam
-from _cutouts import write_cutout
 
 RA0, DEC0 = 64.038142, -24.067472
 

@@ -19,11 +19,10 @@ from astropy.io import fits
 import clumpylen_jax  # noqa: F401  (float64)
 from clumpylen_jax.cli import main
 from clumpylen_jax.errors import ConfigError
-from clumpylen_jax.observations import ObservationSpec, read_observation
+from clumpylen_jax.observations import ObservationSpec, read_observation, write_cutout
 from clumpylen_jax.observations.config import load_observation_scene
 from clumpylen_jax.observations.frame import fit_frame
 from clumpylen_jax.observations.read import HUGE_SIGMA_FACTOR
-from _cutouts import write_cutout
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"

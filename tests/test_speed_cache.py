@@ -128,7 +128,7 @@ def test_cli_fit_keeps_its_programs_and_no_cache_keeps_none(monkeypatch, tmp_pat
 
     from astropy.table import Table
 
-    from _cutouts import write_cutout
+    from clumpylen_jax.observations import write_cutout
     y, x = np.mgrid[:24, :24] - 11.5
     sci = 50.0 * np.exp(-np.hypot(x, y) / 3.0) + np.random.default_rng(4).normal(size=(24, 24))
     image = write_cutout(tmp_path / "c.fits", sci, np.ones_like(sci), extra={"PIXSCALE": 0.03})

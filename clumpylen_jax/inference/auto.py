@@ -661,9 +661,11 @@ def _host_moves(ctx: _Ctx, u, u0, active):
       parameters: accepted when ln L rises.
     - ("reseed", slot): the host from the data's moments again (flux: the moments' less the
       clumps'), the old host a new clump in a free slot: judged as an added clump."""
-    if ctx.opts.host is False or ctx.param.state(jnp.asarray(u)).source.disk is not None:
+    if ctx.opts.host is False:
         return []
     st, st0 = ctx.param.state(jnp.asarray(u)), ctx.param.state(jnp.asarray(u0))
+    if st.source.disk is not None:
+        return []
     host, host0, cl = st.source.bulge, st0.source.bulge, st.source.clumps
     if host is None or host0 is None:
         return []
