@@ -200,7 +200,8 @@ def _chunked_calls(programs, name, fun, baked, chunk=1 << 16):
     shape by one program (`programcache.function`), loaded or compiled once."""
     from . import programcache
     pad = jnp.zeros(chunk, jnp.float64)
-    fn = programcache.function(name, fun, pad, pad, folder=programs, baked=baked)
+    fn = programcache.function(name, fun, pad, pad, folder=programs, baked=baked,
+                               quick_compile=True)
 
     def call(x, y):
         x = np.asarray(x, float)
@@ -425,7 +426,7 @@ def _modulation_mean(programs, disk):
     disk = dataclasses.replace(disk, sersic=dataclasses.replace(
         disk.sersic, flux=jnp.zeros(1, jnp.result_type(disk.sersic.re_arcsec))))
     return _program(programs, "population.disk_modulation_mean", render.disk_modulation_mean,
-                    disk)
+                    disk, quick_compile=True)
 
 
 def _mean_for(prep: "Prepared"):
@@ -435,11 +436,12 @@ def _mean_for(prep: "Prepared"):
     return None if mean is None else jnp.asarray(mean, prep.dtype)
 
 
-def _program(programs, name: str, fun, *args):
+def _program(programs, name: str, fun, *args, quick_compile=False):
     """fun(*args) as one program (arrays traced, every other leaf static); its executable
-    kept between runs in `programs` (`programcache`: a folder, a `ReadAhead`, or None)."""
+    kept between runs in `programs` (`programcache`: a folder, a `ReadAhead`, or None).
+    quick_compile: `programcache.QUICK_COMPILE` (a program that runs once)."""
     from . import programcache
-    return programcache.call(name, fun, *args, folder=programs)
+    return programcache.call(name, fun, *args, folder=programs, quick_compile=quick_compile)
 
 
 def _with_host_light(programs, model, source: Source, modulation_mean=None, extra_grids=()):
@@ -456,8 +458,11 @@ def _with_host_light(programs, model, source: Source, modulation_mean=None, extr
     subgrids = tuple(first_band_per_subgrid(model.layouts).items())
     args = (model.hosts, subgrids, Source(source.bulge, source.disk, None), modulation_mean)
     if not extra_grids:
+        # run once per scene (then kept by `lightcache`): compiled quickly in 2.6–3.1 s
+        # instead of 4.1–6.4 s, its run 0.6–2.4 s either way (not so the unlensed grids'
+        # program below: its run took 4× longer compiled quickly)
         return model.with_host_light(_kept_light(programs, "host_unit_light", _host_unit_light,
-                                                 *args))
+                                                 *args, quick_compile=True))
     units = _kept_light(programs, "host_unit_light_and_grids", _host_unit_light_and_grids,
                         *args, tuple(extra_grids))
     return model.with_host_light(units[:len(subgrids)]), units[len(subgrids):]
@@ -471,18 +476,20 @@ def _host_unit_light_and_grids(hosts, subgrids, source: Source, modulation_mean,
     return hosts.unit_light(source, dict(subgrids), modulation_mean, extra_grids=grids)
 
 
-def _kept_light(programs, name: str, fun, *args):
+def _kept_light(programs, name: str, fun, *args, quick_compile=False):
     """fun(*args) (light per unit flux) as one program, kept between runs in the cache
     folder (`lightcache`) unless it is off."""
     from . import lightcache
     folder = cache_root() / "light" if cache_enabled() else None
-    return lightcache.kept(name, lambda: _program(programs, name, fun, *args), args, folder)
+    return lightcache.kept(name, lambda: _program(programs, name, fun, *args,
+                                                  quick_compile=quick_compile), args, folder)
 
 
 def _jit_call(programs, model, method: str, *args):
-    """Compile and call a SceneModel method (the model's arrays are traced, not hashed)."""
+    """Compile and call a SceneModel method (the model's arrays are traced, not hashed),
+    compiled quickly: a run calls it once."""
     return _program(programs, f"SceneModel.{method}", lambda m, *a: getattr(m, method)(*a),
-                    model, *args)
+                    model, *args, quick_compile=True)
 
 
 def _wcs_for(grid, scene):
@@ -627,11 +634,11 @@ def _launch_unlensed(prep: Prepared, prog: _Progress, hr=None):
         if groups and isinstance(unl_model.clumps, UnlensedClumps):
             images, plane = _program(prep.programs, "unlensed_and_source_plane",
                                      _unlensed_and_source_plane, held, src, mono, hr_host,
-                                     sgrid, prep.accuracy, groups)
+                                     sgrid, prep.accuracy, groups, quick_compile=True)
             return unl_model, images, plane
         return (unl_model, _jit_call(prep.programs, held, 'band_images', src),
                 _program(prep.programs, "source_plane_images", _source_plane_images, mono,
-                         hr_host, sgrid, prep.accuracy, groups))
+                         hr_host, sgrid, prep.accuracy, groups, quick_compile=True))
 
 
 def _unlensed_and_source_plane(model, source, mono, host, grid, accuracy, groups):
@@ -727,7 +734,7 @@ def _render_bands(prep: Prepared, hr, later_noise=None):
     clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
                                       _with_host_light(prep.programs, model, prep.source,
                                                        _mean_for(prep)),
-                                      prep.source, hr_fluxes, magnify)
+                                      prep.source, hr_fluxes, magnify, quick_compile=True)
     noisy = clean if later_noise is None else \
         later_noise.result()(jax.random.key(scene.seed), clean)
     var = model.variances(clean)
@@ -747,7 +754,7 @@ def _noise_program(prep: Prepared, prog: _Progress):
             "band_noise", _band_noise, jax.random.key(0), like,
             tuple(det.name for det in model.layouts),
             tuple(det.exptime_s for det in model.layouts), model.accuracy.gaussian_noise_above,
-            folder=prep.programs)
+            folder=prep.programs, quick_compile=True)
 
 
 def _band_noise(key, clean, names, exptimes_s, gaussian_above_counts):
@@ -914,7 +921,7 @@ def _hr_source_plane(prep: Prepared, mono, sgrid):
                            Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy,
                            _mean_for(prep))
     return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
-                           host, sgrid, prep.accuracy, groups)
+                           host, sgrid, prep.accuracy, groups, quick_compile=True)
 
 
 def _write_hr_set(prep: Prepared, out: Path, hr, images, grid, lensed: bool, **composite):

