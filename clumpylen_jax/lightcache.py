@@ -45,11 +45,13 @@ def light_key(name: str, args) -> str | None:
     return h.hexdigest() if feed_pytree(h, args) else None
 
 
-def kept(name: str, compute, args, folder=None):
+def kept(name: str, compute, args, folder=None, submit=None):
     """compute() (a pytree of arrays, the light of `args`), read from / written to `folder`
-    (None: computed, nothing read or written). Read back, its arrays are NumPy's."""
+    (None: computed, nothing read or written). Read back, its arrays are NumPy's.
+    submit: writes the file in the background (`modelcache.pickled`), so that the caller
+    need not wait for the program to finish."""
     key = None if folder is None else light_key(name, args)
     if key is None:
         return compute()
     return pickled(Path(folder), f"{name}-{key[:40]}.pkl", compute, KEEP_FILES, "*.pkl",
-                   lambda light: jax.tree_util.tree_map(np.asarray, light))
+                   lambda light: jax.tree_util.tree_map(np.asarray, light), submit=submit)

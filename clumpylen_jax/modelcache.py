@@ -20,6 +20,7 @@ is the user's own, like JAX's compilation cache).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import pickle
 from pathlib import Path
@@ -45,21 +46,27 @@ def model_key(source, bands, lens, **settings) -> str | None:
     return h.hexdigest()
 
 
-def build(build_fn, source, bands, *, lens=None, folder=None, **settings):
+def build(build_fn, source, bands, *, lens=None, folder=None, submit=None, **settings):
     """build_fn(source, bands, lens=lens, **settings), read from / kept in `folder`
-    (None: built, nothing read or written)."""
+    (None: built, nothing read or written); `submit`: see `pickled`."""
     key = None if folder is None else model_key(source, bands, lens, **settings)
     if key is None:
         return build_fn(source, bands, lens=lens, **settings)
     return pickled(Path(folder), f"model-{key[:40]}.pkl",
                    lambda: build_fn(source, bands, lens=lens, **settings), KEEP_MODELS,
-                   "model-*.pkl")
+                   "model-*.pkl", submit=submit)
 
 
-def pickled(folder: Path, name: str, compute, keep: int, pattern: str, stored=lambda x: x):
+def pickled(folder: Path, name: str, compute, keep: int, pattern: str, stored=lambda x: x,
+            submit=None):
     """folder/name read back (pickle), else compute() written there atomically as stored(it),
     keeping the `keep` most recently used files of folder that match `pattern`. A truncated
-    or foreign file is computed again and replaced."""
+    or foreign file is computed again and replaced.
+
+    submit: a function (fn, *args) that calls fn(*args) in the background (an executor's
+    `submit`; its owner waits for it before its outputs count as written), so that the
+    caller goes on at once: JAX arrays still being computed are waited for there, not
+    here. None: written here."""
     path = folder / name
     if path.is_file():
         try:
@@ -69,10 +76,15 @@ def pickled(folder: Path, name: str, compute, keep: int, pattern: str, stored=la
         except Exception:       # truncated or from other code: computed again and replaced
             pass
     value = compute()
+    (_write if submit is None else functools.partial(submit, _write))(
+        path, value, stored, keep, pattern)
+    return value
+
+
+def _write(path: Path, value, stored, keep: int, pattern: str):
     with atomic_write(path, "wb") as fh:
         pickle.dump(stored(value), fh, protocol=pickle.HIGHEST_PROTOCOL)
-    evict(folder, keep, pattern)
-    return value
+    evict(path.parent, keep, pattern)
 
 
 def evict(folder: Path, keep: int, pattern: str):

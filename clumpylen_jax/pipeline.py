@@ -92,6 +92,8 @@ class Prepared:
     # the textured disk's `render.disk_modulation_mean` (float64; None: no textured disk),
     # computed once by `prepare` and given to every host-light program
     modulation_mean: object = None
+    # writes cache files in the background (`modelcache.pickled`'s submit), or None
+    cache_submit: object = None
 
 
 def _cosmology(scene):
@@ -362,14 +364,16 @@ def _population_and_photometry(scene, filters, zps, cosmology, dtype, progress, 
 
 
 def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
-            programs=None, on_source=None) -> Prepared:
+            programs=None, on_source=None, cache_submit=None) -> Prepared:
     """Population, photometry, lens, PSFs and the model of a scene (no rendering yet).
 
     programs: where compiled programs are kept (`programcache`: a folder or a `ReadAhead`
     of it); None: the cache folder's programs/ unless the cache is off.
     on_source: called with a `Prepared` whose lens, field and model are still None as soon
     as the source, its catalogue and the bands are made, before the lens is traced (so
-    that work which needs no lens, e.g. compiling the unlensed programs, overlaps it)."""
+    that work which needs no lens, e.g. compiling the unlensed programs, overlaps it).
+    cache_submit: writes the cache folder's models and light in the background
+    (`modelcache.pickled`); None: written as they are made."""
     progress = progress or _Progress(False, 1)
     programs = _program_folder() if programs is None else programs
     model_mod.require_float64_mode(scene.render.dtype)
@@ -390,7 +394,7 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
             bands = later_bands.result()
     if on_source is not None:
         on_source(Prepared(scene, source, table, None, bands, zps, None, None, accuracy, dtype,
-                           host_masses, progress.timings, programs, mean))
+                           host_masses, progress.timings, programs, mean, cache_submit))
     with progress.stage("lens"):
         lens = build_lens(scene, cosmology)
         field = _field(scene, lens, source, accuracy)
@@ -402,10 +406,11 @@ def prepare(scene: scene_mod.Scene, *, progress: Optional[_Progress] = None,
         model = modelcache.build(
             lambda *a, **k: model_mod.build_model(*a, ray_cache=rays, **k), source, bands,
             lens=lens, folder=cache_root() / "models" if cache_enabled() else None,
+            submit=cache_submit,
             field_arcsec=field, lens_pixel_arcsec=scene.render.lens_pixel_arcsec,
             source_pixel_arcsec=scene.render.source_pixel_arcsec, accuracy=accuracy, dtype=dtype)
     return Prepared(scene, source, table, lens, bands, zps, field, model, accuracy, dtype,
-                    host_masses, progress.timings, programs, mean)
+                    host_masses, progress.timings, programs, mean, cache_submit)
 
 
 # ------------------------------------------------------------------ running and writing
@@ -444,13 +449,15 @@ def _program(programs, name: str, fun, *args, quick_compile=False):
     return programcache.call(name, fun, *args, folder=programs, quick_compile=quick_compile)
 
 
-def _with_host_light(programs, model, source: Source, modulation_mean=None, extra_grids=()):
+def _with_host_light(programs, model, source: Source, modulation_mean=None, extra_grids=(),
+                     submit=None):
     """The model with its host's light per unit flux held (`SceneModel.with_host_light`):
     computed by a program of its own, or read back from the cache folder (`lightcache`:
     it depends on the host's geometry and the grids only). A source without host: the
     model itself. modulation_mean: the textured disk's (`_mean_for`), None without one.
     extra_grids (unlensed models only): more grids whose host light the same program makes
-    (`UnlensedHosts.unit_light`); returns (model, their light) then."""
+    (`UnlensedHosts.unit_light`); returns (model, their light) then. submit: writes the
+    kept light in the background (`Prepared.cache_submit`)."""
     if source.bulge is None and source.disk is None:
         return (model, [(None, None)] * len(extra_grids)) if extra_grids else model
     # what the light depends on, and no more (the key hashes every array it is given):
@@ -462,9 +469,9 @@ def _with_host_light(programs, model, source: Source, modulation_mean=None, extr
         # instead of 4.1–6.4 s, its run 0.6–2.4 s either way (not so the unlensed grids'
         # program below: its run took 4× longer compiled quickly)
         return model.with_host_light(_kept_light(programs, "host_unit_light", _host_unit_light,
-                                                 *args, quick_compile=True))
+                                                 *args, quick_compile=True, submit=submit))
     units = _kept_light(programs, "host_unit_light_and_grids", _host_unit_light_and_grids,
-                        *args, tuple(extra_grids))
+                        *args, tuple(extra_grids), submit=submit)
     return model.with_host_light(units[:len(subgrids)]), units[len(subgrids):]
 
 
@@ -476,13 +483,14 @@ def _host_unit_light_and_grids(hosts, subgrids, source: Source, modulation_mean,
     return hosts.unit_light(source, dict(subgrids), modulation_mean, extra_grids=grids)
 
 
-def _kept_light(programs, name: str, fun, *args, quick_compile=False):
+def _kept_light(programs, name: str, fun, *args, quick_compile=False, submit=None):
     """fun(*args) (light per unit flux) as one program, kept between runs in the cache
     folder (`lightcache`) unless it is off."""
     from . import lightcache
     folder = cache_root() / "light" if cache_enabled() else None
     return lightcache.kept(name, lambda: _program(programs, name, fun, *args,
-                                                  quick_compile=quick_compile), args, folder)
+                                                  quick_compile=quick_compile), args, folder,
+                          submit)
 
 
 def _jit_call(programs, model, method: str, *args):
@@ -550,7 +558,7 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
         scene = scene_mod.load_scene(scene)
     scene = scene_mod.with_overrides(scene, seed=seed, bands=bands, noise=noise)
     out = Path(out_dir)
-    n_stages = 7 + len(scene.bands) + 9
+    n_stages = 7 + len(scene.bands) + 10
     prog = _Progress(progress, n_stages)
     t_start = time.perf_counter()
     if programs is None:
@@ -569,14 +577,24 @@ def _simulate_into(scene, out_dir, *, bands=None, seed=None, noise=None, progres
     # and colour arrays beside the band files; figures are drawn one at a time).
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-launch")
     writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-write-hr")
+    # the cache folder's models and light are written by a thread of their own: the light
+    # is written once its program has run, while this thread goes on (a cold run waited
+    # for it before it traced the band render)
+    cache_writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-cache")
+    cache_writes = []
+
+    def cache_submit(fn, *args):
+        cache_writes.append(cache_writer.submit(fn, *args))
+
     early = {}
     try:
-        prep = prepare(scene, progress=prog, programs=programs,
+        prep = prepare(scene, progress=prog, programs=programs, cache_submit=cache_submit,
                        on_source=lambda src: early.update(_launch_early(src, prog, pool, out)))
-        return _simulate_launched(prep, prog, pool, writer, out, t_start, early)
+        return _simulate_launched(prep, prog, pool, writer, out, t_start, early, cache_writes)
     finally:
         writer.shutdown(wait=True, cancel_futures=True)
         pool.shutdown(wait=True, cancel_futures=True)
+        cache_writer.shutdown(wait=True)
 
 
 def _launch_early(prep: Prepared, prog: _Progress, pool, out: Path) -> dict:
@@ -613,16 +631,18 @@ def _launch_unlensed(prep: Prepared, prog: _Progress, hr=None):
         unl_model = modelcache.build(
             model_mod.build_model, prep.source, prep.bands, lens=None,
             folder=cache_root() / "models" if cache_enabled() else None,
+            submit=prep.cache_submit,
             accuracy=prep.accuracy, dtype=prep.dtype)
         src = prep.source
         if hr is None or (src.bulge is None and src.disk is None and src.clumps is None):
             return (unl_model, _jit_call(prep.programs, _with_host_light(
-                prep.programs, unl_model, src, _mean_for(prep)), 'band_images', src), None)
+                prep.programs, unl_model, src, _mean_for(prep), submit=prep.cache_submit),
+                'band_images', src), None)
         mono, sgrid = hr
         hr_host = (None, None)
         if src.bulge is not None or src.disk is not None:
             held, (hr_host,) = _with_host_light(prep.programs, unl_model, src, _mean_for(prep),
-                                                (sgrid,))
+                                                (sgrid,), submit=prep.cache_submit)
             bulge, disk = hr_host
             if disk is not None:   # as `render.disk_image`: the values × the pixel area
                 scale = render.disk_image_scale(src.disk, sgrid)
@@ -660,10 +680,11 @@ def _write_hr_lensed_stage(prep, prog, out, hr, hr_lensed):
 
 
 def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path, t_start,
-                       early: dict) -> dict:
+                       early: dict, cache_writes=()) -> dict:
     """The stages of `simulate` after `prepare`: programs launched in `pool` (those that
     need no lens already, `early`: `_launch_early`'s), the high-resolution products written
-    by `writer`, the rest here; returns the summary."""
+    by `writer`, the rest here; returns the summary. cache_writes: futures of the cache
+    files written in the background, waited for before the summary."""
     scene, model, table = prep.scene, prep.model, prep.catalog
     # the writer thread imports what writing needs, off the main thread's path, then writes
     # the high-resolution unlensed products as soon as the source plane is done (during the
@@ -699,6 +720,9 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
                 lensed_written.result()
     with prog.stage("catalogue"):
         table = _write_catalogue(out, prep, mags)
+    with prog.stage("cache files (wait)"):
+        for done in cache_writes:       # a failed write fails the run, as one in line did
+            done.result()
     summary = _summary(prep, summary_bands, table, hr_info)
     summary["timings_s"] = dict(prog.timings, total=round(time.perf_counter() - t_start, 3))
     summary["timings_split_s"] = prog.clock.split()
@@ -733,7 +757,8 @@ def _render_bands(prep: Prepared, hr, later_noise=None):
     magnify = bool(table is not None and len(table) and model.lensed)
     clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
                                       _with_host_light(prep.programs, model, prep.source,
-                                                       _mean_for(prep)),
+                                                       _mean_for(prep),
+                                                       submit=prep.cache_submit),
                                       prep.source, hr_fluxes, magnify, quick_compile=True)
     noisy = clean if later_noise is None else \
         later_noise.result()(jax.random.key(scene.seed), clean)
@@ -919,7 +944,7 @@ def _hr_source_plane(prep: Prepared, mono, sgrid):
     if mono.bulge is not None or mono.disk is not None:
         host = _kept_light(prep.programs, "source_plane_host_light", _source_plane_host_light,
                            Source(mono.bulge, mono.disk, None), sgrid, prep.accuracy,
-                           _mean_for(prep))
+                           _mean_for(prep), submit=prep.cache_submit)
     return sgrid, _program(prep.programs, "source_plane_images", _source_plane_images, mono,
                            host, sgrid, prep.accuracy, groups, quick_compile=True)
 

@@ -288,8 +288,10 @@ def test_quick_compile_is_keyed_apart_reaches_xla_and_reads_back_its_own_bits(mo
                                              quick_compile=True))
         default = np.asarray(programcache.call("tiny", _render, *_args(), folder=tmp_path))
     want = programcache.QUICK_COMPILE if jax.default_backend() == "cpu" else {}
-    # the default program may be compiled twice (`_compile_own`: a hit in JAX's cache)
-    assert seen[0] == want and len(seen) >= 2 and all(o == {} for o in seen[1:])
+    # each may be compiled twice (`_compile_own`, after a hit in JAX's cache)
+    first_default = seen.index({}) if want else 1
+    assert first_default >= 1 and all(o == want for o in seen[:first_default])
+    assert len(seen) > first_default and all(o == {} for o in seen[first_default:])
     assert len(list(tmp_path.glob("tiny-*.jaxexec"))) == 2
     with monkeypatch.context() as m:
         _refuse_tracing(m)
