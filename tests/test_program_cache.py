@@ -130,7 +130,7 @@ def f(x):     # slices, pads and reshapes: XLA makes fusions of them
 
 x = jnp.linspace(0.0, 1.0, 200)
 if step == "older":         # older code: compiled through jax/ (a hit there stores JAX's copy)
-    programcache._fresh_compile = lambda lowered: lowered.compile()
+    programcache._fresh_compile = lambda lowered, options=None: lowered.compile(options)
 if step == "load":          # the stored executable, called directly
     (path,) = (root / folder).glob("f-*.jaxexec")
     out = programcache._load(path)(x)
