@@ -17,6 +17,8 @@ The interpolation formulas themselves are all in `grid.py`.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,7 +38,8 @@ def trace_in_chunks(lens, theta1, theta2, chunk=1 << 20):
     f = jax.jit(lambda a, b: lens.deflection(a, b))
     # chunks of one size (the last one padded with its own last ray): one compilation
     n = theta1.size
-    chunk = max(1, min(chunk, -(-n // max(1, -(-n // chunk)))))
+    n_chunks = max(1, math.ceil(n / chunk))
+    chunk = max(1, math.ceil(n / n_chunks))
     for s in range(0, n, chunk):
         t1, t2 = theta1[s:s + chunk], theta2[s:s + chunk]
         if t1.size < chunk:
