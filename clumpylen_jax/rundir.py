@@ -215,6 +215,35 @@ def _signals_held():
 
 
 @contextlib.contextmanager
+def _signals_noted(received: list):
+    """SIGINT/SIGTERM handled as before (KeyboardInterrupt, ...), and noted in `received`:
+    Python swallows an exception raised where it cannot propagate (seen: a SIGINT landing in
+    JAX's gc callback printed "Exception ignored" and the run went on to replace the old
+    one), so `run_directory` checks the note before it swaps the run in. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {}
+
+    def note(signum, frame):
+        received.append(signum)
+        if callable(old[signum]):
+            old[signum](signum, frame)
+        elif old[signum] == signal.SIG_DFL:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+
+    # an ignored signal (SIGINT of a job started with & from a script) stays ignored
+    old.update({s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)
+                if signal.getsignal(s) not in (signal.SIG_IGN, None)})
+    try:
+        yield
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+
+
+@contextlib.contextmanager
 def _locked(directory: Path):
     """An exclusive flock on a directory (released when the block ends; leaves no file)."""
     import fcntl
@@ -268,7 +297,11 @@ def run_directory(out_dir, *, setting: str = "--out") -> Iterator[RunDirectory]:
         os.umask(umask)
         os.chmod(tmp, 0o777 & ~umask)   # mkdtemp makes it private (0700)
         run = RunDirectory(tmp, out, {})
-        yield run
+        received = []
+        with _signals_noted(received):
+            yield run
+        if received:     # an interrupt whose exception was swallowed on the way
+            raise KeyboardInterrupt
         write_manifest(tmp, run.meta)
         _swap_in(tmp, out, setting)
     except BaseException as exc:

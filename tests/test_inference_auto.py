@@ -578,6 +578,58 @@ def test_host_moves_swap_roles_with_a_broader_clump_or_reseed_the_host():
     assert auto._host_moves(ctx, u, u0, active) == []
 
 
+def test_a_rejected_host_move_that_fits_as_well_is_kept_as_an_alternative(monkeypatch):
+    """`auto._rehost`: a reseed that raises ln L by 5 (less than the criterion asks for its
+    extra clump) is rejected and its clumps are recorded in its step ("alternative"), which
+    `host_alternatives` reads back; one 3 below the kept fit's (beyond ALTERNATIVE_DLNL) is
+    not recorded. The local fits are stood in for (no fit)."""
+    img = _blobs(np.array([[10, 12], [25, 30]]), [5.0, 3.0]) + 0.5
+    opts = AutoOptions(max_clumps=4, n_starts=4, re_max_arcsec=4 * PIX).validate()
+    ctx, u0 = auto._setup(make_model, [img], [np.full(img.shape, 0.01)], None, None, None, opts)
+    u = auto._set_clump(ctx, np.asarray(u0), 0, [0.1, 0.0], [4.0], 0.05)
+    active = np.array([1.0, 0.0, 0.0, 0.0])
+    alt = auto._set_clump(ctx, u, 1, [-0.2, 0.1], [2.5], 0.03)
+    act = np.array([1.0, 1.0, 0.0, 0.0])
+    monkeypatch.setattr(auto, "_host_moves", lambda *a: [("reseed", 1, alt, act, [1, 0])])
+    for gain, recorded in ((5.0, True), (-3.0, False)):
+        monkeypatch.setattr(auto, "_fit_local", lambda ctx, us, *a, g=gain: (
+            np.asarray(us), np.array([-100.0 + g]), np.array([True]), np.array([4])))
+        steps = []
+        u_out, lnl, active_out, _ = auto._rehost(ctx, u, u0, -100.0, active, np.ones(4, int),
+                                                  steps)
+        assert steps[0]["action"] == "reject_reseed" and not steps[0]["accepted"]
+        assert lnl == -100.0 and active_out.tolist() == active.tolist()
+        assert ("alternative" in steps[0]) == recorded
+        alts = auto.host_alternatives(steps)
+        assert len(alts) == int(recorded)
+    centres, fluxes = auto.host_alternatives([dict(alternative=dict(
+        center_arcsec=[[0.1, 0.0], [-0.2, 0.1]], flux=[[4.0], [2.5]]))])[0]
+    assert np.allclose(centres, [[0.1, 0.0], [-0.2, 0.1]]) and np.allclose(fluxes, [[4.0], [2.5]])
+
+
+def test_host_alternative_flag_marks_clumps_whose_flux_the_alternative_moves():
+    """`host_alternative_flag`: flagged where the nearest alternative clump (within
+    max(match, R_e)) has a flux more than ALTERNATIVE_SIGMA σ away in a band, or where the
+    alternative has no clump there (its light went to the host); a band with NaN σ counts
+    not; no alternatives flags nothing."""
+    centre = np.array([[0.0, 0.0], [0.3, 0.0], [0.0, 0.3], [-0.3, 0.0]])
+    flux = np.array([[10.0, 5.0], [10.0, 5.0], [10.0, 5.0], [10.0, 5.0]])
+    err = np.array([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [1.0, np.nan]])
+    re = np.array([0.02, 0.02, 0.02, 0.02])
+    alt = (np.array([[0.01, 0.0], [0.3, 0.005], [-0.3, 0.0]]),
+           np.array([[10.5, 4.0], [6.0, 5.0], [10.0, 20.0]]))
+    flag = auto.host_alternative_flag(centre, flux, err, re, [alt], 0.06)
+    # within 1σ; 4σ in the first band; no clump near (0, 0.3); 15σ only where σ is NaN
+    assert flag.tolist() == [False, True, True, False]
+    assert not auto.host_alternative_flag(centre, flux, err, re, [], 0.06).any()
+    # a broad clump matches farther than `match_arcsec`: R_e 0.1" reaches (0.08, 0)
+    far = (np.array([[0.08, 0.0]]), np.array([[10.2, 5.1]]))
+    assert auto.host_alternative_flag(centre[:1], flux[:1], err[:1], [0.1], [far], 0.06).tolist() \
+        == [False]
+    assert auto.host_alternative_flag(centre[:1], flux[:1], err[:1], [0.02], [far], 0.06).tolist() \
+        == [True]
+
+
 @pytest.mark.slow
 def test_without_errors_the_same_clumps_and_no_table():
     """AutoOptions(errors=False) (what `clumpylen fit` asks for): the same optimum, bit for

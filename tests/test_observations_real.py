@@ -267,11 +267,21 @@ def test_auto_stage_of_the_command_runs_at_the_looser_tolerance(tmp_path, monkey
     opts = seen["options"]
     assert opts.rtol == run.AUTO_RTOL > auto.AutoOptions().rtol
     assert not opts.errors and not opts.merge
+    # no clump found: no starts, and the counting's steps still come back (summary.json's
+    # "counting")
+    import types
+    steps = [dict(step=0, action="host"), dict(step=1, action="stop")]
+    monkeypatch.setattr(auto, "fit_without_truth", lambda *a, **k: types.SimpleNamespace(
+        state=types.SimpleNamespace(source=types.SimpleNamespace(clumps=None)), steps=steps))
+    assert run.auto_starts(obs, frame, scene) == (None, steps)
 
 
 def check_mock_fit(out, knots):
     from astropy.table import Table
     summary = json.loads((out / "summary.json").read_text())
+    # the counting's steps: the host first, then clumps added, and the final refit
+    actions = [st["action"] for st in summary["counting"]]
+    assert actions[0] == "host" and "add" in actions and actions[-1] == "final", actions
     assert summary["bands"]["F150W"]["n_pixels_masked"] == 80
     assert 0.85 < summary["chi2_per_dof"]["F150W"] < 1.2, summary["chi2_per_dof"]
     t = Table.read(out / "fit.ecsv")

@@ -20,7 +20,10 @@ from the Fisher covariance, propagated linearly):
   16–84 % width reported.
 - `flag` (bits of `inference.auto.FLAGS`, as in mock-image fits): 0 fine; 1 the fit did
   not converge; 2 the R_e hit a prior bound; 4 the clump sits within a pixel of the field's
-  edge; 16 the size is unresolved (σ(R_e) > R_e: read R_e as an upper limit).
+  edge; 16 the size is unresolved (σ(R_e) > R_e: read R_e as an upper limit); 64 the
+  counting found the host's light shared otherwise nearly as well (`clumps = "auto"`: a host
+  move rejected for its extra clump only) with this clump's flux > 2σ away or gone: its
+  magnitude holds a systematic error its σ does not (`inference.auto.FLAGS`).
 """
 
 from __future__ import annotations
@@ -75,9 +78,10 @@ def _param_err(cov, idx, label):
     return float(np.sqrt(cov[i, i])) if i is not None else np.nan
 
 
-def clump_rows(fit, observations, frame, scene, lens=None):
+def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
     """An astropy Table of the fitted clumps (see the module doc); `lens` as
-    `observations.lens.place_lens` returns it (None: no lens)."""
+    `observations.lens.place_lens` returns it (None: no lens); alternatives: the counting's
+    `inference.auto.host_alternatives` (flag 64)."""
     from astropy.table import Table
 
     opts = scene.fit
@@ -116,6 +120,12 @@ def clump_rows(fit, observations, frame, scene, lens=None):
     if len(observations) >= 2 and scene.z_source is not None:
         _mass_columns(t, flux, f_err, observations, scene, mu)
     t["flag"] = _flags(fit, frame, pix, opts, re_err > re)
+    if len(alternatives):
+        from ..inference.auto import FLAGS, host_alternative_flag
+        finest = min(g.pixel_arcsec for g in frame.grids)
+        alt = host_alternative_flag(phi, flux, f_err, np.asarray(cl.re_arcsec, float),
+                                    alternatives, 2.0 * finest)
+        t["flag"] |= np.where(alt, FLAGS["host_alternative"], 0)
     return t
 
 

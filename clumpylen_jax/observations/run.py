@@ -70,17 +70,19 @@ def catalogue_starts(path: str, frame) -> dict:
     return {"phi": np.asarray(phi, float).reshape(-1, 2), "re_arcsec": re}
 
 
-def auto_starts(observations, frame, scene) -> dict:
+def auto_starts(observations, frame, scene):
     """Clumps found and counted in the data by `inference.auto.fit_without_truth` (its seeding,
     criterion and multi-start), on this module's model of the data's pixels; its clumps then
-    start the joint fit here, which gives the reported answers."""
+    start the joint fit here, which gives the reported answers. Returns (the starts, None
+    without clumps; the counting's steps, `AutoFit.steps`: what summary.json's "counting"
+    lists)."""
     import dataclasses
 
     from ..inference.auto import AutoOptions, fit_without_truth
     from .fit import host_re_bounds, make_model_factory
     opts = scene.fit
     if opts.max_clumps == 0:
-        return None
+        return None, []
     # no Fisher errors there: only the optimum is used, the joint fit below gives the errors;
     # no merge or shape moves: the joint fit starts round clumps (q, PA not passed on), and
     # the moves are measured on the simulated recovery scenes only (issue 18)
@@ -104,14 +106,14 @@ def auto_starts(observations, frame, scene) -> dict:
                              options=AutoOptions(**{k: v for k, v in wanted.items() if k in names}))
     cl = auto.state.source.clumps
     if cl is None or cl.count == 0:
-        return None
+        return None, auto.steps
     # the whole optimum of the counting fit starts the joint fit: host, background and fluxes
     # too, so fit_observations skips its host-only stage (one compile and one fit fewer); its
     # model and clump capacity draw the joint fit's images (their program is compiled)
     return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float),
             "flux": np.asarray(cl.flux, float), "host": auto.state.source.bulge,
             "background": np.asarray(auto.state.background_counts_per_s, float),
-            "render": (auto.model, int(auto.param.template.source.clumps.count))}
+            "render": (auto.model, int(auto.param.template.source.clumps.count))}, auto.steps
 
 
 def fit_observation_scene(scene, out_dir=None, *, progress=None):
@@ -127,12 +129,12 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
     lens = place_lens(scene, frame)
     read_s = time.perf_counter() - t0
     opts = scene.fit
-    starts = None
+    starts, counting = None, None
     if opts.clumps == "auto":
         if progress:    # the longest stage: say so before it starts
             progress(f"read {len(obs)} bands in {read_s:.1f} s; finding and counting clumps "
                      f"(auto, up to {opts.max_clumps})")
-        starts = auto_starts(obs, frame, scene)
+        starts, counting = auto_starts(obs, frame, scene)
         if progress:
             progress(f"auto: {0 if starts is None else len(starts['phi'])} clumps in "
                      f"{time.perf_counter() - t0 - read_s:.1f} s; joint fit")
@@ -145,10 +147,14 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
     fit.timings_s["read"] = round(read_s, 3)
     fit.timings_s["clump_starts" if opts.clumps != "auto" else "auto"] = round(starts_s, 3)
     fit.timings_s["command_total"] = round(time.perf_counter() - t0, 3)
-    table = clump_rows(fit, obs, frame, scene, lens)
+    from ..inference.auto import host_alternatives
+    table = clump_rows(fit, obs, frame, scene, lens, host_alternatives(counting or []))
     host = host_summary(fit, obs, frame)
     files = []
     if out_dir is not None:
         from .outputs import write_all
-        files = write_all(out_dir, scene, obs, frame, fit, table, host, lens=lens)
+        # the counting's steps (clump added, removed, host moves; Δ ln L, criterion,
+        # χ²/dof), so that a user sees why a clump is in or out (issue 18)
+        extra = None if counting is None else {"counting": counting}
+        files = write_all(out_dir, scene, obs, frame, fit, table, host, extra=extra, lens=lens)
     return fit, table, host, files
