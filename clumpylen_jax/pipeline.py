@@ -202,8 +202,9 @@ def _chunked_calls(programs, name, fun, baked, chunk=1 << 16):
     shape by one program (`programcache.function`), loaded or compiled once."""
     from . import programcache
     pad = jnp.zeros(chunk, jnp.float64)
+    # "light": its runs (the population's few chunks) cost next to nothing
     fn = programcache.function(name, fun, pad, pad, folder=programs, baked=baked,
-                               quick_compile=True)
+                               quick_compile="light")
 
     def call(x, y):
         x = np.asarray(x, float)
@@ -431,7 +432,7 @@ def _modulation_mean(programs, disk):
     disk = dataclasses.replace(disk, sersic=dataclasses.replace(
         disk.sersic, flux=jnp.zeros(1, jnp.result_type(disk.sersic.re_arcsec))))
     return _program(programs, "population.disk_modulation_mean", render.disk_modulation_mean,
-                    disk, quick_compile=True)
+                    disk, quick_compile="light")
 
 
 def _mean_for(prep: "Prepared"):
@@ -444,7 +445,8 @@ def _mean_for(prep: "Prepared"):
 def _program(programs, name: str, fun, *args, quick_compile=False):
     """fun(*args) as one program (arrays traced, every other leaf static); its executable
     kept between runs in `programs` (`programcache`: a folder, a `ReadAhead`, or None).
-    quick_compile: `programcache.QUICK_COMPILE` (a program that runs once)."""
+    quick_compile: `programcache.QUICK_COMPILE` (a program that runs once), "light":
+    `programcache.LIGHT_COMPILE` (one whose run costs next to nothing)."""
     from . import programcache
     return programcache.call(name, fun, *args, folder=programs, quick_compile=quick_compile)
 
@@ -467,7 +469,8 @@ def _with_host_light(programs, model, source: Source, modulation_mean=None, extr
     if not extra_grids:
         # run once per scene (then kept by `lightcache`): compiled quickly in 2.6–3.1 s
         # instead of 4.1–6.4 s, its run 0.6–2.4 s either way (not so the unlensed grids'
-        # program below: its run took 4× longer compiled quickly)
+        # program below: its run took 4× longer compiled quickly; "light" compiled 0.5–0.9 s
+        # faster and ran 1 s longer)
         return model.with_host_light(_kept_light(programs, "host_unit_light", _host_unit_light,
                                                  *args, quick_compile=True, submit=submit))
     units = _kept_light(programs, "host_unit_light_and_grids", _host_unit_light_and_grids,
@@ -762,9 +765,9 @@ def _render_bands(prep: Prepared, hr, later_noise=None):
                                       prep.source, hr_fluxes, magnify, quick_compile=True)
     noisy = clean if later_noise is None else \
         later_noise.result()(jax.random.key(scene.seed), clean)
-    var = model.variances(clean)
-    return (tuple([np.asarray(x) for x in imgs] for imgs in (noisy, clean, var)), hr_lensed,
-            None if mags is None else np.asarray(mags))
+    clean = [np.asarray(x) for x in clean]
+    return ([np.asarray(x) for x in noisy], clean, model.variances(clean)), hr_lensed, \
+        None if mags is None else np.asarray(mags)
 
 
 def _noise_program(prep: Prepared, prog: _Progress):
@@ -773,12 +776,15 @@ def _noise_program(prep: Prepared, prog: _Progress):
     compiles beside the band render (JAX's Poisson sampler is a fifth of that program)."""
     with prog.stage("noise (compile)"):
         model = prep.model
-        like = tuple(jnp.zeros(det.grid.shape, prep.dtype) for det in model.layouts)
+        # numpy: a jnp.zeros per shape is a compile of its own
+        like = tuple(np.zeros(det.grid.shape, prep.dtype) for det in model.layouts)
         from . import programcache
         return programcache.compiled(
             "band_noise", _band_noise, jax.random.key(0), like,
             tuple(det.name for det in model.layouts),
             tuple(det.exptime_s for det in model.layouts), model.accuracy.gaussian_noise_above,
+            # not "light": its Poisson draws differed from a default jit's (`observe`) in
+            # 1340 pixels of the paper scene; quickly compiled they are the same bits
             folder=prep.programs, quick_compile=True)
 
 

@@ -68,6 +68,10 @@ _LAYOUT = "3"       # bump when the file layout or the key changes
 # for programs that run once per process and whose compilation costs more than their run:
 # the unlensed grids' host light ran 6.5 → 28 s with them.
 QUICK_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+# ... and LLVM unoptimised (quick_compile="light"): for programs whose run is a few ms, e.g.
+# the disk's modulation mean (compiled in 0.77 s instead of 1.41, run 7 → 11 ms). Its
+# floating-point results may differ from a default jit's in the last bit.
+LIGHT_COMPILE = dict(QUICK_COMPILE, xla_backend_optimization_level=0)
 
 
 @functools.lru_cache(maxsize=1)
@@ -220,7 +224,8 @@ def call(name: str, fun, *args, folder=None, baked=None, quick_compile=False):
     of the program (part of the key by their bytes), as those a jitted closure captures:
     XLA folds them as it does there, so that the values are those of such a jit.
     quick_compile: compiled with `QUICK_COMPILE`'s options (part of the key), for a
-    program whose compilation costs more than its runs.
+    program whose compilation costs more than its runs; "light": `LIGHT_COMPILE`'s, for
+    one whose runs cost next to nothing.
     """
     program, leaves = _program(name, fun, args, folder, baked, quick_compile)
     return program(leaves)
@@ -250,10 +255,12 @@ def _inputs(args):
     return [jax.numpy.asarray(x) for x, _ in pairs], tree, [impl for _, impl in pairs]
 
 
-def _compile_options(quick: bool) -> dict:
-    """XLA's options for a program: `QUICK_COMPILE`'s where asked for (on a CPU), else
-    XLA's defaults."""
-    return dict(QUICK_COMPILE) if quick and jax.default_backend() == "cpu" else {}
+def _compile_options(quick) -> dict:
+    """XLA's options for a program: `QUICK_COMPILE`'s where asked for (quick True, on a
+    CPU), `LIGHT_COMPILE`'s for quick "light", else XLA's defaults."""
+    if not quick or jax.default_backend() != "cpu":
+        return {}
+    return dict(LIGHT_COMPILE if quick == "light" else QUICK_COMPILE)
 
 
 def _program(name, fun, args, folder, baked, quick_compile=False):
