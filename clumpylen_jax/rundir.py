@@ -29,6 +29,7 @@ import json
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import uuid
@@ -236,9 +237,20 @@ def _signals_noted(received: list):
     # an ignored signal (SIGINT of a job started with & from a script) stays ignored
     old.update({s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)
                 if signal.getsignal(s) not in (signal.SIG_IGN, None)})
+    old_hook = sys.unraisablehook
+
+    def unraisable(info):
+        # the swallowed KeyboardInterrupt is noted above and acted on after the block: not
+        # printed as "Exception ignored ... Traceback" on the user's terminal
+        if not (received and info.exc_type is not None
+                and issubclass(info.exc_type, KeyboardInterrupt)):
+            old_hook(info)
+
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
+        sys.unraisablehook = old_hook
         for s, handler in old.items():
             signal.signal(s, handler)
 
