@@ -24,8 +24,9 @@ detection-only completeness of the same clumps (`--completeness N`, default 8:
 `inference.completeness.completeness_grid`, each true clump's flux and R_e injected round
 at N random positions within the catalogue's spread of the host's centre, into the noisy
 image of the host alone, found by photutils segmentation, no fit): what a detection
-catalogue would find of the clumps the fit recovers; "in a segment" counts a clump inside
-any segment, the host's included (found but blended: no position or flux of its own). The outside check: at S/N > 10, ≥ 90 % recovered,
+catalogue would find of the clumps the fit recovers, plain and with photutils' deblending;
+"in a segment" counts a clump inside any segment, the host's included (found but blended:
+no position or flux of its own). The outside check: at S/N > 10, ≥ 90 % recovered,
 |pull| < 3 for flux and size in ≥ 90 % of them, ≤ 1 false clump per scene with S/N > 10.
 
 Run: .venv/bin/python benchmarks/bench_recovery.py [--seeds 4] [--scenes unlensed,sis,arc]
@@ -252,10 +253,11 @@ def _simulate_and_fit(kind, seed, d: Path, psf: str):
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
 
-def _detection_completeness(prep, true, kind, seed, n_trials):
+def _detection_completeness(prep, true, kind, seed, n_trials, deblend=False):
     """Detection-only completeness of each true clump's flux and R_e (module doc): the
     diagonal of a `completeness_grid` over the clumps' fluxes × R_e; round clumps of the
-    scene's Sérsic index (the catalogue's q, 0.5–1, is not injected)."""
+    scene's Sérsic index (the catalogue's q, 0.5–1, is not injected). deblend: photutils'
+    deblending of the segments (`completeness.detect`)."""
     import jax
 
     from clumpylen_jax.inference.completeness import completeness_grid
@@ -265,7 +267,8 @@ def _detection_completeness(prep, true, kind, seed, n_trials):
         np.asarray(true["flux"], float), np.asarray(true["re_arcsec"], float),
         jax.random.key(5000 + seed), lens=prep.lens, field_arcsec=prep.field_arcsec,
         n_trials=n_trials, region_arcsec=KINDS[kind]["spread"],
-        clump_n=float(prep.source.clumps.n[0]), accuracy=prep.accuracy, fisher=False)
+        clump_n=float(prep.source.clumps.n[0]), accuracy=prep.accuracy, fisher=False,
+        deblend=deblend)
     return np.diag(res.completeness), np.diag(res.detected_fraction)
 
 
@@ -283,15 +286,19 @@ def run_one(kind, seed, work: Path, psf: str = "gaussian", completeness_trials: 
     dist, dist_iso = _distances(true, fit, _image_maps(prep, true))
     m = _match(true, dist)
     m_iso = _match(true, dist_iso)
+    none = np.full(len(true), np.nan)
     det, det_any = (_detection_completeness(prep, true, kind, seed, completeness_trials)
-                    if completeness_trials else (np.full(len(true), np.nan),) * 2)
+                    if completeness_trials else (none, none))
+    det_deb = (_detection_completeness(prep, true, kind, seed, completeness_trials, True)[0]
+               if completeness_trials else none)
     rows = []
     for i, j in enumerate(m):
         q = float(true["q"][i])
         r = {"snr": float(true["snr"][i]), "flux": float(true["flux"][i]),
              "re_arcsec": float(true["re_arcsec"][i]), "q": q, "recovered": bool(j >= 0),
              "recovered_iso": bool(m_iso[i] >= 0),
-             "detection_completeness": float(det[i]), "detected_in_segment": float(det_any[i])}
+             "detection_completeness": float(det[i]), "detected_in_segment": float(det_any[i]),
+             "detection_completeness_deblended": float(det_deb[i])}
         if j >= 0:
             f = fit[j]
             # a round fitted clump's R_e estimates the circularised R_e·√q of an elliptical
@@ -327,14 +334,17 @@ def summarise(results):
     rec = np.array([c["recovered"] for c in clumps])
     det = np.array([c.get("detection_completeness", np.nan) for c in clumps], float)
     seg = np.array([c.get("detected_in_segment", np.nan) for c in clumps], float)
+    deb = np.array([c.get("detection_completeness_deblended", np.nan) for c in clumps], float)
     out = {"bins": []}
     for lo, hi in zip(SNR_BINS[:-1], SNR_BINS[1:]):
         sel = (snr >= lo) & (snr < hi)
-        d, g = det[sel & np.isfinite(det)], seg[sel & np.isfinite(seg)]
+        d, g, e = (a[sel & np.isfinite(a)] for a in (det, seg, deb))
         out["bins"].append({"snr": [lo, hi], "n": int(sel.sum()),
                             "recovered": float(rec[sel].mean()) if sel.any() else None,
                             "detection_completeness": float(d.mean()) if d.size else None,
-                            "detected_in_segment": float(g.mean()) if g.size else None})
+                            "detected_in_segment": float(g.mean()) if g.size else None,
+                            "detection_completeness_deblended": float(e.mean()) if e.size
+                            else None})
     # by size, at S/N > 10 (fainter ones are missed whatever their size)
     re_mas = np.array([1e3 * c["re_arcsec"] for c in clumps])
     out["re_bins"] = []
@@ -342,8 +352,9 @@ def summarise(results):
         sel = (re_mas >= lo) & (re_mas < hi) & (snr > 10)
         out["re_bins"].append({"re_mas": [lo, hi], "n": int(sel.sum()),
                                "recovered": float(rec[sel].mean()) if sel.any() else None})
-    d10 = det[(snr > 10) & np.isfinite(det)]
-    out["snr_gt10_detection_completeness"] = float(d10.mean()) if d10.size else None
+    for key, a in (("detection_completeness", det), ("detection_completeness_deblended", deb)):
+        a10 = a[(snr > 10) & np.isfinite(a)]
+        out[f"snr_gt10_{key}"] = float(a10.mean()) if a10.size else None
     hi = [c for c in clumps if c["snr"] > 10 and c["recovered"]]
     for key in ("recovered", "recovered_iso"):
         out[f"snr_gt10_{key}"] = float(np.mean([c[key] for c in clumps if c["snr"] > 10])) \
@@ -388,15 +399,18 @@ def _write(results, kinds, n_seeds, wall_s, name="recovery", psf="gaussian"):
     lines.append("")
     for k, s in summary.items():
         lines += [f"## {k}", "", "| Fisher S/N | clumps | recovered (fit) | detection-only "
-                  "completeness | in a segment (blended too) |", "|---|---|---|---|---|"]
+                  "completeness | deblended | in a segment (blended too) |",
+                  "|---|---|---|---|---|---|"]
         lines += [f"| {b['snr'][0]}-{b['snr'][1] if b['snr'][1] < 1e8 else 'inf'} | {b['n']} | "
                   f"{_fmt(b['recovered'])} | {_fmt(b.get('detection_completeness'))} | "
+                  f"{_fmt(b.get('detection_completeness_deblended'))} | "
                   f"{_fmt(b.get('detected_in_segment'))} |" for b in s["bins"]]
         lines += ["", "| R_e mas (S/N > 10) | clumps | recovered |", "|---|---|---|"]
         lines += [f"| {b['re_mas'][0]}-{b['re_mas'][1]} | {b['n']} | {_fmt(b['recovered'])} |"
                   for b in s["re_bins"]]
         lines += ["", f"S/N > 10: recovered {_fmt(s['snr_gt10_recovered'])} (detection-only "
-                  f"completeness {_fmt(s.get('snr_gt10_detection_completeness'))}; isotropic "
+                  f"completeness {_fmt(s.get('snr_gt10_detection_completeness'))}, deblended "
+                  f"{_fmt(s.get('snr_gt10_detection_completeness_deblended'))}; isotropic "
                   f"√|μ| rule: {_fmt(s['snr_gt10_recovered_iso'])}); |pull| < 3: flux "
                   f"{_fmt(s['pull_flux_within3'])}, R_e {_fmt(s['pull_re_within3'])} "
                   f"(circularised R_e√q: {_fmt(s['pull_re_circ_within3'])}), "

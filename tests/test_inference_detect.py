@@ -40,3 +40,23 @@ def test_completeness_grid_bright_found_faint_missed():
     assert res.fisher_snr_flux[1, 0] > 10 * res.fisher_snr_flux[0, 0]
     assert res.segment_multiplicity[2] >= 1
     assert len(res.to_table()) == 2
+
+
+def test_deblending_gives_a_clump_on_a_host_a_segment_of_its_own():
+    """`completeness.detect`: a compact clump 6 pixels from the centre of a broad host lies in
+    the host's segment (one segment, its centroid near the host's), and deblended it is a
+    segment of its own, whose centroid lies nearer the clump than the host's centre (not on
+    it: the watershed gives the clump's segment the host's light on its side, 3 pixels of
+    pull here); pure numpy images."""
+    from clumpylen_jax.inference.completeness import _centroids, detect
+    yy, xx = np.mgrid[:61, :61] - 30.0
+    host = 50.0 * np.exp(-np.hypot(xx, yy) / 6.0)
+    clump = 40.0 * np.exp(-0.5 * ((xx - 6.0) ** 2 + (yy - 2.0) ** 2) / 1.2**2)
+    img = host + clump + np.random.default_rng(0).normal(0.0, 0.5, host.shape)
+    plain = detect(img, 0.5, nsigma=3.0, npixels=5)
+    deblended = detect(img, 0.5, nsigma=3.0, npixels=5, deblend=True)
+    r, c = 32, 36           # the clump's peak pixel (row = y, col = x)
+    assert plain[r, c] > 0 and plain[r, c] == plain[30, 30]
+    assert deblended[r, c] > 0 and deblended[r, c] != deblended[30, 30]
+    cy, cx = _centroids(img, deblended)[int(deblended[r, c])]
+    assert np.hypot(cy - r, cx - c) < np.hypot(cy - 30, cx - 30), (cy, cx)

@@ -91,12 +91,18 @@ def image_peaks(image, rel: float = 0.2):
     return np.argwhere(peaks)
 
 
-def detect(image_minus_sky, sigma, *, nsigma=3.0, npixels=5):
-    """Segmentation map (int array, 0 = background) of pixels above nsigma·σ (photutils)."""
-    from photutils.segmentation import detect_sources
-    seg = detect_sources(np.asarray(image_minus_sky), nsigma * np.asarray(sigma), int(npixels))
+def detect(image_minus_sky, sigma, *, nsigma=3.0, npixels=5, deblend=False):
+    """Segmentation map (int array, 0 = background) of pixels above nsigma·σ (photutils);
+    with `deblend`, each segment split by photutils' multi-threshold deblending (32 levels,
+    contrast 0.001: SExtractor's defaults), so that a clump on a host is a segment of its own
+    where its peak stands out."""
+    from photutils.segmentation import deblend_sources, detect_sources
+    img = np.asarray(image_minus_sky)
+    seg = detect_sources(img, nsigma * np.asarray(sigma), int(npixels))
     if seg is None:
         return np.zeros(np.shape(image_minus_sky), int)
+    if deblend:
+        seg = deblend_sources(img, seg, int(npixels), progress_bar=False)
     return np.asarray(seg.data)
 
 
@@ -111,7 +117,7 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
                       lens=None, field_arcsec=None, positions_arcsec=None, n_trials=8,
                       region_arcsec=None, band=0, nsigma=3.0, npixels=5, match_radius_pix=2.0,
                       clump_n=0.5, clump_q=1.0, flux_ratios=None, accuracy=None,
-                      fisher=True) -> CompletenessResult:
+                      fisher=True, deblend=False) -> CompletenessResult:
     """Injection–recovery completeness over (flux, size) in band index `band`.
 
     base_source: the scene without the injected clump (host and/or clumps, may be empty of
@@ -123,6 +129,7 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
         radius `region_arcsec` (default 0.3") around the base source's centre.
     nsigma, npixels: photutils detection settings.  match_radius_pix: matching radius.
     fisher: also compute the Fisher-forecast S/N of each injected clump.
+    deblend: split the segments by photutils' deblending (`detect`).
     """
     from ..model import Accuracy
 
@@ -149,7 +156,7 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
     mult = np.zeros(n_base + 2, int)
     comp, det, blend = _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks,
                                        mult, nsigma=nsigma, npixels=npixels,
-                                       match_radius_pix=match_radius_pix)
+                                       match_radius_pix=match_radius_pix, deblend=deblend)
     shape = (fluxes.size, sizes.size)
     snr_f = np.full(shape, np.nan)
     snr_r = np.full(shape, np.nan)
@@ -176,7 +183,7 @@ def _injectors(model, base, ratios, clump_n, clump_q, band):
 
 
 def _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks, mult, *,
-                    nsigma, npixels, match_radius_pix):
+                    nsigma, npixels, match_radius_pix, deblend=False):
     """(completeness, detected, blended fractions) [n_flux, n_size]: every trial position of
     every cell injected, observed with its own noise key, detected and scored."""
     n_trials = pos.shape[0]
@@ -196,7 +203,7 @@ def _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks,
                 peaks = image_peaks(alone[t]) if f > 0 else np.zeros((0, 2), int)
                 hit, matched, blended = _score_trial(
                     noisy[t] - sky, np.sqrt(var[t]), peaks, base_peaks, mult, nsigma=nsigma,
-                    npixels=npixels, match_radius_pix=match_radius_pix)
+                    npixels=npixels, match_radius_pix=match_radius_pix, deblend=deblend)
                 det[i, j] += hit
                 comp[i, j] += matched
                 blend[i, j] += blended
@@ -229,13 +236,13 @@ def _grid_model(base_source, bands, pos, re_max_arcsec, clump_n, clump_q, **buil
 
 
 def _score_trial(image_minus_sky, sigma, peaks, base_peaks, mult, *, nsigma, npixels,
-                 match_radius_pix):
+                 match_radius_pix, deblend=False):
     """Detect one trial's image and score the injected clump: (hit, matched, blended).
 
     peaks: (row, col) of the injected clump's images; base_peaks: those of each base clump.
     mult (histogram of true clumps per segment) is incremented in place for every segment.
     """
-    seg = detect(image_minus_sky, sigma, nsigma=nsigma, npixels=npixels)
+    seg = detect(image_minus_sky, sigma, nsigma=nsigma, npixels=npixels, deblend=deblend)
     cents = _centroids(image_minus_sky, seg)
     owners = {}
     for pk_list in base_peaks + [peaks]:
