@@ -192,6 +192,17 @@ def check_run(run_dir, setting: str = "run directory") -> dict:
     return manifest
 
 
+def _act_as(handler, signum, frame=None):
+    """Do what `handler` (a signal's handler before ours) does with signum: call it (e.g.
+    KeyboardInterrupt from the default SIGINT handler), or for SIG_DFL put it back and raise
+    the signal again; SIG_IGN: nothing."""
+    if callable(handler):
+        handler(signum, frame)
+    elif handler == signal.SIG_DFL:
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+
 @contextlib.contextmanager
 def _signals_held():
     """Hold SIGINT/SIGTERM back (acted on when the block ends), so that no interrupt splits
@@ -209,10 +220,7 @@ def _signals_held():
         for s, handler in old.items():
             signal.signal(s, handler)
         for s in received[:1]:
-            if callable(old[s]):
-                old[s](s, None)            # e.g. KeyboardInterrupt from the default SIGINT handler
-            elif old[s] == signal.SIG_DFL:
-                os.kill(os.getpid(), s)
+            _act_as(old[s], s)
 
 
 @contextlib.contextmanager
@@ -228,11 +236,7 @@ def _signals_noted(received: list):
 
     def note(signum, frame):
         received.append(signum)
-        if callable(old[signum]):
-            old[signum](signum, frame)
-        elif old[signum] == signal.SIG_DFL:
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+        _act_as(old[signum], signum, frame)
 
     # an ignored signal (SIGINT of a job started with & from a script) stays ignored
     old.update({s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)

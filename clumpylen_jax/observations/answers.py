@@ -119,13 +119,13 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
     _photometry_columns(t, flux, f_err, observations, opts.detection_snr, mu)
     if len(observations) >= 2 and scene.z_source is not None:
         _mass_columns(t, flux, f_err, observations, scene, mu)
-    t["flag"] = _flags(fit, frame, pix, opts, re_err > re)
+    alt = None
     if len(alternatives):
-        from ..inference.auto import FLAGS, host_alternative_flag
+        from ..inference.auto import host_alternative_flag
         finest = min(g.pixel_arcsec for g in frame.grids)
         alt = host_alternative_flag(phi, flux, f_err, np.asarray(cl.re_arcsec, float),
                                     alternatives, 2.0 * finest)
-        t["flag"] |= np.where(alt, FLAGS["host_alternative"], 0)
+    t["flag"] = _flags(fit, frame, pix, opts, re_err > re, alt)
     return t
 
 
@@ -222,8 +222,9 @@ def _mass_columns(t, flux, f_err, observations, scene, mu):
         t[key] = val
 
 
-def _flags(fit, frame, pix, opts, unresolved):
-    """The flag bits (module doc; `inference.auto.FLAGS`); `unresolved`: σ(R_e) > R_e."""
+def _flags(fit, frame, pix, opts, unresolved, host_alternative=None):
+    """The flag bits (module doc; `inference.auto.FLAGS`); `unresolved`: σ(R_e) > R_e;
+    `host_alternative`: `inference.auto.host_alternative_flag`'s, or None."""
     from ..inference.auto import FLAGS
     flag = np.zeros(len(pix), int)
     if not fit.success:
@@ -235,6 +236,8 @@ def _flags(fit, frame, pix, opts, unresolved):
     at_bound = (r_obs < 1.02 * opts.clump_re_min_arcsec) | (r_obs > 0.98 * opts.clump_re_max_arcsec)
     flag |= np.where(at_bound, FLAGS["re_at_bound"], 0)
     flag |= np.where(unresolved, FLAGS["size_unresolved"], 0)
+    if host_alternative is not None:
+        flag |= np.where(host_alternative, FLAGS["host_alternative"], 0)
     return flag
 
 
