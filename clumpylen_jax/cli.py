@@ -583,7 +583,16 @@ def console() -> None:
     once the output streams and logging are flushed): by then every file is written and
     swapped into place, and tearing down what the run leaves (XLA's client and compiled
     programs, the imported modules) takes ~0.6 s of a warm run's ~10 s. Other commands
-    (a study's Dask cluster, for one) exit as usual."""
+    (a study's Dask cluster, for one) exit as usual.
+
+    NumPy's OpenBLAS threads wait for the next job by spinning for ~0.1 s after each one
+    (its default `OPENBLAS_THREAD_TIMEOUT`, 2²⁸ cycles) before they sleep; between the
+    many small products of the PSFs' matrix Fourier transforms (poppy) they spun for
+    1.5–4 s of CPU of a cold `simulate`'s 9 PSFs (6.6–9.0 s CPU for 4.0–5.6 s wall; 2⁴
+    cycles: 5.0–5.3 s CPU for 4.2–4.4 s wall), taken from the thread compiling beside
+    them. Set here, before anything imports NumPy, for this process only (a value the
+    user set is kept); it changes when threads sleep, never a result."""
+    os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
     argv = sys.argv[1:]
     code = main(argv)
     if argv[:1] == ["simulate"]:

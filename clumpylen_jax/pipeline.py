@@ -17,11 +17,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import __version__, cosmology as cosmo_mod, io, model as model_mod, modelcache, photometry
+from . import programcache
 from . import profiles, render, rgbimage, rundir, scene as scene_mod
 from .builders import model_band
 from .cache import cache_enabled, cache_root, read_ahead
@@ -200,7 +202,6 @@ def _component_mags(comp, mass_msun, filters, zps, scene, cosmology):
 def _chunked_calls(programs, name, fun, baked, chunk=1 << 16):
     """A numpy function (x, y) -> fun(baked, x, y), evaluated in zero-padded chunks of one
     shape by one program (`programcache.function`), loaded or compiled once."""
-    from . import programcache
     pad = jnp.zeros(chunk, jnp.float64)
     # "light": its runs (the population's few chunks) cost next to nothing
     fn = programcache.function(name, fun, pad, pad, folder=programs, baked=baked,
@@ -447,7 +448,6 @@ def _program(programs, name: str, fun, *args, quick_compile=False):
     kept between runs in `programs` (`programcache`: a folder, a `ReadAhead`, or None).
     quick_compile: `programcache.QUICK_COMPILE` (a program that runs once), "light":
     `programcache.LIGHT_COMPILE` (one whose run costs next to nothing)."""
-    from . import programcache
     return programcache.call(name, fun, *args, folder=programs, quick_compile=quick_compile)
 
 
@@ -476,6 +476,20 @@ def _with_host_light(programs, model, source: Source, modulation_mean=None, extr
     units = _kept_light(programs, "host_unit_light_and_grids", _host_unit_light_and_grids,
                         *args, tuple(extra_grids), submit=submit)
     return model.with_host_light(units[:len(subgrids)]), units[len(subgrids):]
+
+
+def _held_light_placeholder(prep: Prepared, model):
+    """`_with_host_light(..., model, prep.source, ...)`'s model with zeros in place of the
+    held light (same pytree, shapes and dtypes: the same program), found by tracing alone;
+    the model itself for a source without host."""
+    source = prep.source
+    if source.bulge is None and source.disk is None:
+        return model
+    subgrids = tuple(first_band_per_subgrid(model.layouts).items())
+    shapes = eqx.filter_eval_shape(_host_unit_light, model.hosts, subgrids,
+                                   Source(source.bulge, source.disk, None), _mean_for(prep))
+    return model.with_host_light(jax.tree_util.tree_map(
+        lambda s: np.zeros(s.shape, s.dtype), shapes))
 
 
 def _host_unit_light(hosts, subgrids, source: Source, modulation_mean=None):
@@ -731,8 +745,7 @@ def _simulate_launched(prep: Prepared, prog: _Progress, pool, writer, out: Path,
     summary["timings_split_s"] = prog.clock.split()
     summary["accuracy"] = dataclasses.asdict(prep.accuracy)
     io.write_json(out / "summary.json", summary)
-    from .programcache import ReadAhead
-    if isinstance(prep.programs, ReadAhead):    # the next run reads these programs ahead
+    if isinstance(prep.programs, programcache.ReadAhead):    # the next run reads these programs ahead
         prep.programs.remember()
     return summary
 
@@ -758,11 +771,19 @@ def _render_bands(prep: Prepared, hr, later_noise=None):
     # light at the traced pixels (per unit flux) and the rays are computed once for both
     hr_fluxes = _fluxes(hr[0]) if hr is not None and model.lensed else None
     magnify = bool(table is not None and len(table) and model.lensed)
-    clean, hr_lensed, mags = _program(prep.programs, "SceneModel.band_render", _band_render,
-                                      _with_host_light(prep.programs, model, prep.source,
-                                                       _mean_for(prep),
-                                                       submit=prep.cache_submit),
-                                      prep.source, hr_fluxes, magnify, quick_compile=True)
+    args = (prep.source, hr_fluxes, magnify)
+    # The host's light per unit flux (its own program, or read back) is made in a thread of
+    # its own while this one loads or compiles the band render from zeros of the light's
+    # shapes: its compilation and run (~2.6 s of a cold run) are then off this thread's
+    # path, on the core the background programs leave free by then. Same program, same
+    # inputs: the same images as one after the other.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="clumpylen-light") as pool:
+        later = pool.submit(_with_host_light, prep.programs, model, prep.source,
+                            _mean_for(prep), submit=prep.cache_submit)
+        render_ = programcache.compiled("SceneModel.band_render", _band_render,
+                                        _held_light_placeholder(prep, model), *args,
+                                        folder=prep.programs, quick_compile=True)
+        clean, hr_lensed, mags = render_(later.result(), *args)
     noisy = clean if later_noise is None else \
         later_noise.result()(jax.random.key(scene.seed), clean)
     clean = [np.asarray(x) for x in clean]
@@ -778,7 +799,6 @@ def _noise_program(prep: Prepared, prog: _Progress):
         model = prep.model
         # numpy: a jnp.zeros per shape is a compile of its own
         like = tuple(np.zeros(det.grid.shape, prep.dtype) for det in model.layouts)
-        from . import programcache
         return programcache.compiled(
             "band_noise", _band_noise, jax.random.key(0), like,
             tuple(det.name for det in model.layouts),

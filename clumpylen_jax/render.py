@@ -219,29 +219,40 @@ def _sample_sum(brightness, grid: Grid, order: int, dtype):
 
 def _sample_sums(brightness, grids, order: int, dtype):
     """`_sample_sum` on each grid of `grids`, in one loop whose body evaluates `brightness`
-    once per sample on the pixels of every grid at once (flattened and concatenated): the
-    profile (a textured disk: thousands of operations) is compiled once, not once per grid.
-    Each pixel's samples are the values `_sample_sum` adds, in the same order."""
+    once per sample on the pixels of every grid at once: the profile (a textured disk:
+    thousands of operations) is compiled once, not once per grid. Each pixel's samples are
+    the values `_sample_sum` adds, in the same order.
+
+    The grids' pixels are one flat range, each pixel's sample coordinates computed from its
+    index (grid, row, column: the same centre + offset sums as `_sample_sum`), and one flat
+    sum is kept: no coordinate arrays are concatenated, nor values split, per sample (the
+    paper scene's unlensed sub-grids and 2047² source plane: the same bits, 10.3 → 4.6–6.0
+    s of CPU per run)."""
     if len(grids) == 1:
         return [_sample_sum(brightness, grids[0], order, dtype)]
     offs, wts = (v.tolist() for v in gauss_legendre_offsets(order))
     w = jnp.asarray([wy * wx for wy in wts for wx in wts], dtype)
-    dx = [jnp.asarray([ox * g.pixel_arcsec for _ in offs for ox in offs], dtype) for g in grids]
-    dy = [jnp.asarray([oy * g.pixel_arcsec for oy in offs for _ in offs], dtype) for g in grids]
-    xc = [jnp.asarray(g.x_centers(), dtype)[None, :] for g in grids]
-    yc = [jnp.asarray(g.y_centers(), dtype)[:, None] for g in grids]
-    splits = np.cumsum([g.ny * g.nx for g in grids])[:-1].tolist()
+    dx = jnp.asarray([[ox * g.pixel_arcsec for _ in offs for ox in offs] for g in grids], dtype)
+    dy = jnp.asarray([[oy * g.pixel_arcsec for oy in offs for _ in offs] for g in grids], dtype)
+    # every grid's column and row centres, one table each (rounded to dtype as there)
+    xc = jnp.asarray(np.concatenate([np.asarray(g.x_centers(), np.dtype(dtype)) for g in grids]))
+    yc = jnp.asarray(np.concatenate([np.asarray(g.y_centers(), np.dtype(dtype)) for g in grids]))
+    starts = np.cumsum([0] + [g.ny * g.nx for g in grids]).tolist()
+    first_col = jnp.asarray(np.cumsum([0] + [g.nx for g in grids[:-1]]), jnp.int32)
+    first_row = jnp.asarray(np.cumsum([0] + [g.ny for g in grids[:-1]]), jnp.int32)
+    nx = jnp.asarray([g.nx for g in grids], jnp.int32)
+    first = jnp.asarray(starts[:-1], jnp.int32)
 
     def add_sample(k, acc):
-        x = jnp.concatenate([jnp.broadcast_to(xc[t] + dx[t][k], g.shape).ravel()
-                             for t, g in enumerate(grids)])
-        y = jnp.concatenate([jnp.broadcast_to(yc[t] + dy[t][k], g.shape).ravel()
-                             for t, g in enumerate(grids)])
-        vals = jnp.split(brightness(x, y), splits)
-        return tuple(a + w[k] * v.reshape(g.shape) for a, v, g in zip(acc, vals, grids))
+        pixel = jax.lax.iota(jnp.int32, starts[-1])
+        g = sum((pixel >= s).astype(jnp.int32) for s in starts[1:-1])
+        row = jax.lax.div(pixel - first[g], nx[g])          # indices ≥ 0: truncation is floor
+        col = pixel - first[g] - row * nx[g]
+        return acc + w[k] * brightness(xc[first_col[g] + col] + dx[g, k],
+                                       yc[first_row[g] + row] + dy[g, k])
 
-    acc = tuple(jnp.zeros(g.shape, dtype) for g in grids)
-    return list(jax.lax.fori_loop(0, order * order, add_sample, acc))
+    acc = jax.lax.fori_loop(0, order * order, add_sample, jnp.zeros(starts[-1], dtype))
+    return [acc[a:b].reshape(g.shape) for a, b, g in zip(starts[:-1], starts[1:], grids)]
 
 
 def _pixel_edges(index, origin, pixel, dtype):
