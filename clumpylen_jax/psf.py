@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -513,21 +514,43 @@ def _pupil(telescope: str):
     """
     import poppy
 
+    optic = _kept_transmission_optic()
     if telescope == "JWST":
-        return poppy.CompoundAnalyticOptic(
+        return optic(
             opticslist=[
                 poppy.MultiHexagonAperture(rings=2, flattoflat=1.32, gap=0.007, segmentlist=list(range(1, 19))),
                 poppy.SecondaryObscuration(secondary_radius=0.37, n_supports=3, support_width=0.1),
             ],
             name="JWST-like segmented pupil",
         ), 6.6
-    return poppy.CompoundAnalyticOptic(
+    return optic(
         opticslist=[
             poppy.CircularAperture(radius=1.2),
             poppy.SecondaryObscuration(secondary_radius=0.396, n_supports=4, support_width=0.0264, support_angle_offset=45.0),
         ],
         name="HST-like pupil",
     ), 2.4
+
+
+@functools.cache
+def _kept_transmission_optic():
+    """poppy's CompoundAnalyticOptic, keeping the transmission it computes for a wavefront
+    grid: a pupil's transmission depends on the pupil-plane grid (shape and metres per
+    pixel), not on the wavelength, yet poppy evaluates the analytic apertures anew for each
+    of a band's wavelengths (~40 % of a diffraction PSF's time). The same values, computed
+    once per grid and optic."""
+    import poppy
+
+    class KeptTransmissionOptic(poppy.CompoundAnalyticOptic):
+        def get_transmission(self, wave):
+            key = (tuple(wave.shape), str(wave.pixelscale), str(wave.planetype),
+                   getattr(wave, "oversample", None))
+            kept = self.__dict__.setdefault("_kept_transmission", {})
+            if key not in kept:
+                kept[key] = super().get_transmission(wave)
+            return kept[key]
+
+    return KeptTransmissionOptic
 
 
 def _band_sampling(wavelength_aa: np.ndarray, throughput: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
