@@ -78,9 +78,16 @@ class LensPlane(eqx.Module):
                                         (ox.ravel(), oy.ravel()))
         c1, c2 = tracing.rays_in_pixels(corner_b1, corner_b2, rows, cols,
                                         (np.zeros(1), np.zeros(1)))
-        ops = tuple(tuple((jnp.asarray(t), jnp.asarray(w, dtype),
-                           None if m is None else jnp.asarray(m, dtype)) for t, w, m in
-                          sparse_rebin_operators(grid, lay.sub_grid)) for lay in layouts)
+        # once per sub-grid: bands on one sub-grid share its operators (the paper scene's
+        # nine bands have three sub-grids)
+        per_subgrid = {}
+        for lay in layouts:
+            if lay.sub_grid not in per_subgrid:
+                per_subgrid[lay.sub_grid] = tuple(
+                    (jnp.asarray(t), jnp.asarray(w, dtype),
+                     None if m is None else jnp.asarray(m, dtype))
+                    for t, w, m in sparse_rebin_operators(grid, lay.sub_grid))
+        ops = tuple(per_subgrid[lay.sub_grid] for lay in layouts)
         return cls(grid, jnp.asarray(rows), jnp.asarray(cols), jnp.asarray(c1[:, 0], dtype),
                    jnp.asarray(c2[:, 0], dtype), jnp.asarray(b1, dtype), jnp.asarray(b2, dtype),
                    jnp.asarray(wxy, dtype), jnp.asarray(rows[sel]), jnp.asarray(cols[sel]),
