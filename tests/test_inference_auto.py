@@ -621,6 +621,18 @@ def test_host_alternative_flag_marks_clumps_whose_flux_the_alternative_moves():
     flag = auto.host_alternative_flag(centre, flux, err, re, [alt], 0.06)
     # within 1σ; 4σ in the first band; no clump near (0, 0.3); 15σ only where σ is NaN
     assert flag.tolist() == [False, True, True, False]
+    # the alternative's flux of each flagged clump (0: none there); of another, NaN; of two
+    # alternatives, the one that moves the clump most (here a second one moving clump 1 by
+    # 2.5σ, less than the first's 4σ, and clump 0 by 3σ)
+    second = (np.array([[0.0, 0.0], [0.3, 0.0], [0.0, 0.3], [-0.3, 0.0]]),
+              np.array([[13.0, 5.0], [7.5, 5.0], [10.0, 5.0], [10.0, 5.0]]))
+    for alts in ([alt], [alt, second], [second, alt]):
+        got, fl = auto.host_alternative_fluxes(centre, flux, err, re, alts, 0.06)
+        assert got.tolist() == ([False, True, True, False] if len(alts) == 1 else
+                                [True, True, True, False])
+        assert np.allclose(fl[1], [6.0, 5.0]) and np.allclose(fl[2], 0.0)
+        assert np.isnan(fl[3]).all()
+        assert np.isnan(fl[0]).all() if len(alts) == 1 else np.allclose(fl[0], [13.0, 5.0])
     assert not auto.host_alternative_flag(centre, flux, err, re, [], 0.06).any()
     # a broad clump matches farther than `match_arcsec`: R_e 0.1" reaches (0.08, 0)
     far = (np.array([[0.08, 0.0]]), np.array([[10.2, 5.1]]))

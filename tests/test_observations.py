@@ -643,6 +643,22 @@ def test_flags_share_the_mock_fits_bits_and_mark_unresolved_sizes():
                          FLAGS["position_at_box_edge"], FLAGS["host_alternative"]]
 
 
+def test_alternative_magnitudes_are_the_alternatives_fluxes_in_ab():
+    """`mag_alt_<F>`: the AB magnitude of the flux each clump has in the host alternative
+    (`host_alternative_fluxes`), NaN where none moves it (NaN) or where it has no clump (0)."""
+    import types
+
+    from astropy.table import Table
+
+    from clumpylen_jax.observations.answers import _alternative_columns
+    t = Table({"id": [0, 1, 2]})
+    obs = [types.SimpleNamespace(name="F150W", zeropoint_ab=28.0),
+           types.SimpleNamespace(name="F444W", zeropoint_ab=27.0)]
+    _alternative_columns(t, np.array([[10.0, 1.0], [np.nan, np.nan], [0.0, 0.0]]), obs)
+    assert np.allclose(t["mag_alt_F150W"][:1], 28.0 - 2.5) and np.allclose(t["mag_alt_F444W"][:1], 27.0)
+    assert np.isnan(t["mag_alt_F150W"][1:]).all() and np.isnan(t["mag_alt_F444W"][1:]).all()
+
+
 def test_final_images_drawn_by_the_counting_model_are_the_fits_own():
     """`observations.fit._chi2` with the automatic stage's model and clump capacity
     (`render`: the state padded with dark clumps, a program the counting compiled) gives

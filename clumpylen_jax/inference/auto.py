@@ -766,19 +766,37 @@ def host_alternative_flag(center_arcsec, flux, flux_err, re_arcsec, alternatives
     """[N] bool: clump i (centre [N, 2] arcsec, flux and its σ [N, B], R_e [N] arcsec) has, in
     one of `alternatives` (`host_alternatives`), no clump within max(match_arcsec, R_e,i) or
     the nearest one's flux more than ALTERNATIVE_SIGMA σ away in a band."""
+    return host_alternative_fluxes(center_arcsec, flux, flux_err, re_arcsec, alternatives,
+                                   match_arcsec)[0]
+
+
+def host_alternative_fluxes(center_arcsec, flux, flux_err, re_arcsec, alternatives,
+                            match_arcsec: float):
+    """(`host_alternative_flag`'s [N] bool, the flux [N, B] each flagged clump has in the
+    alternative that moves it most): a clump the alternative has no clump for has 0 there
+    (its light is the host's); one no alternative flags, NaN. "Most": the largest flux
+    change in σ over the bands (no counterpart: more than any)."""
     center_arcsec = np.asarray(center_arcsec, float).reshape(-1, 2)
     flux, flux_err = np.asarray(flux, float), np.asarray(flux_err, float)
     out = np.zeros(len(center_arcsec), bool)
+    alt_flux = np.full(flux.shape, np.nan)
+    moved = np.full(len(center_arcsec), -np.inf)      # the flagging alternative's change, σ
     for centres, fluxes in alternatives:
         for i, c in enumerate(center_arcsec):
             d = np.hypot(*(centres - c).T) if len(centres) else np.array([])
             if not d.size or d.min() > max(match_arcsec, float(re_arcsec[i])):
                 out[i] = True
+                if moved[i] < np.inf:
+                    moved[i], alt_flux[i] = np.inf, 0.0
                 continue
-            diff = np.abs(fluxes[int(np.argmin(d))] - flux[i])
+            other = fluxes[int(np.argmin(d))]
             ok = np.isfinite(flux_err[i]) & (flux_err[i] > 0)
-            out[i] |= bool(np.any(diff[ok] > ALTERNATIVE_SIGMA * flux_err[i][ok]))
-    return out
+            pull = np.abs(other - flux[i])[ok] / flux_err[i][ok]
+            if np.any(pull > ALTERNATIVE_SIGMA):
+                out[i] = True
+                if pull.max() > moved[i]:
+                    moved[i], alt_flux[i] = pull.max(), other
+    return out, alt_flux
 
 
 def merged_clump(beta, flux, re, n: float, q_range=CLUMP_Q_RANGE):

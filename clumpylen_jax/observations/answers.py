@@ -23,7 +23,11 @@ from the Fisher covariance, propagated linearly):
   edge; 16 the size is unresolved (σ(R_e) > R_e: read R_e as an upper limit); 64 the
   counting found the host's light shared otherwise nearly as well (`clumps = "auto"`: a host
   move rejected for its extra clump only) with this clump's flux > 2σ away or gone: its
-  magnitude holds a systematic error its σ does not (`inference.auto.FLAGS`).
+  magnitude holds a systematic error its σ does not (`inference.auto.FLAGS`);
+- where the counting kept such alternatives: `mag_alt_<F>`, the clump's observed AB mag in
+  the alternative that moves it most (the range between `mag_<F>` and it is the systematic
+  flag 64 warns of); NaN for a clump no alternative moves, and for one the alternative
+  gives to the host (flag 64 set, no clump there).
 """
 
 from __future__ import annotations
@@ -121,10 +125,11 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
         _mass_columns(t, flux, f_err, observations, scene, mu)
     alt = None
     if len(alternatives):
-        from ..inference.auto import host_alternative_flag
+        from ..inference.auto import host_alternative_fluxes
         finest = min(g.pixel_arcsec for g in frame.grids)
-        alt = host_alternative_flag(phi, flux, f_err, np.asarray(cl.re_arcsec, float),
-                                    alternatives, 2.0 * finest)
+        alt, alt_flux = host_alternative_fluxes(phi, flux, f_err, np.asarray(cl.re_arcsec, float),
+                                                alternatives, 2.0 * finest)
+        _alternative_columns(t, alt_flux, observations)
     t["flag"] = _flags(fit, frame, pix, opts, re_err > re, alt)
     return t
 
@@ -208,6 +213,17 @@ def _photometry_columns(t, flux, f_err, observations, detection_snr, mu):
         if mu is not None:
             t[f"mag_int_{ob.name}"] = mag + 2.5 * np.log10(mu)
             t[f"mag_int_{ob.name}_err"] = mag_err
+
+
+def _alternative_columns(t, alt_flux, observations):
+    """Add, per band, the observed AB mag each clump has in the counting's host alternative
+    that moves it most (flag 64; `inference.auto.host_alternative_fluxes`): NaN where no
+    alternative moves it and where the alternative gives its light to the host."""
+    for b, ob in enumerate(observations):
+        F = alt_flux[:, b]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t[f"mag_alt_{ob.name}"] = np.where(F > 0, ab_magnitude(np.where(F > 0, F, 1.0),
+                                                                   ob.zeropoint_ab), np.nan)
 
 
 def _mass_columns(t, flux, f_err, observations, scene, mu):
