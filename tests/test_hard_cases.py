@@ -551,3 +551,37 @@ def test_profiles_settings():
     """The ci profile is derandomized (reproducible runs) unless another one is chosen."""
     s = settings()
     assert s.deadline is None
+
+
+def test_stamp_groups_given_as_a_models_arrays_give_the_same_stamps():
+    """`render.grouped_stamps_on` with the groups' clump indices as NumPy (baked in) and as
+    traced arrays (a model's `LinearisedClumps.index`): the same tiles, origins and clump
+    indices bit for bit, thin groups (exact strips) and cored ones mixed, on two grids."""
+    from clumpylen_jax.pixels import Grid
+    rng = np.random.default_rng(3)
+    n = 24
+    clumps = Clumps(jnp.asarray(rng.uniform(-0.4, 0.4, (n, 2))), jnp.ones((n, 1)),
+                    jnp.asarray(rng.uniform(0.004, 0.06, n)), jnp.asarray(rng.uniform(0.5, 3, n)),
+                    jnp.asarray(rng.uniform(0.05, 1.0, n)), jnp.asarray(rng.uniform(0, 3, n)))
+    grids = [Grid(-0.6, -0.6, 0.01, 121, 121), Grid(-0.62, -0.6, 0.03, 42, 41)]
+    groups = [render.strip_groups(np.asarray(clumps.re_arcsec), np.asarray(clumps.n),
+                                  g.pixel_arcsec, 5, q=np.asarray(clumps.q)) for g in grids]
+    assert {strip for gr in groups for (_, strip), _ in gr} == {True, False}
+
+    def targets(indices):
+        it = iter(indices)
+        return [(g, tuple((side, next(it), strip) for (side, strip), _ in gr))
+                for g, gr in zip(grids, groups)]
+
+    flat = [idx for gr in groups for _, idx in gr]
+    baked = jax.jit(lambda c: render.grouped_stamps_on(c, targets(flat)))(clumps)
+    traced = jax.jit(lambda c, idx: render.grouped_stamps_on(c, targets(idx)))(
+        clumps, [jnp.asarray(i) for i in flat])
+    a, b = jax.tree_util.tree_leaves(baked), jax.tree_util.tree_leaves(traced)
+    assert len(a) == len(b) == 8
+    for x, y in zip(a, b):
+        assert np.asarray(x).tobytes() == np.asarray(y).tobytes()
+    # every clump's stamp holds its light: the tiles sum to ~1 per clump on the fine grid
+    st, _, _, which = baked[0][0]
+    per_clump = np.bincount(np.asarray(which), np.asarray(st).sum(axis=(1, 2)), n)
+    assert np.all(np.abs(per_clump - 1) < 2e-3), per_clump

@@ -320,6 +320,29 @@ def test_diffraction_psf_fwhm_and_cache(tmp_path, instrument, band, pixel, diame
 
 
 @needs_poppy
+@pytest.mark.parametrize("instrument, band", [("JWST/NIRCam", "F150W"), ("HST/WFC3-IR", "F125W")])
+def test_pupil_transmission_kept_across_wavelengths_gives_poppys_psf(monkeypatch, instrument, band):
+    """The pupil optic that keeps its transmission per wavefront grid (computed once, not per
+    wavelength) gives the PSF of poppy's own CompoundAnalyticOptic bit for bit, and computes
+    the transmission once per grid however many wavelengths."""
+    import poppy
+
+    from clumpylen_jax import psf as psf_mod
+    kw = dict(pixel_arcsec=0.02, size_arcsec=0.6, n_wavelengths=4, cache_dir=False)
+    kept_cls = psf_mod._kept_transmission_optic()
+    calls = []
+    original = poppy.CompoundAnalyticOptic.get_transmission
+    monkeypatch.setattr(poppy.CompoundAnalyticOptic, "get_transmission",
+                        lambda self, wave: calls.append(1) or original(self, wave))
+    kept = diffraction_psf(instrument, band, **kw).array
+    assert len(calls) == 1
+    monkeypatch.setattr(psf_mod, "_kept_transmission_optic", lambda: poppy.CompoundAnalyticOptic)
+    plain = diffraction_psf(instrument, band, **kw).array
+    assert len(calls) == 1 + 4 and issubclass(kept_cls, poppy.CompoundAnalyticOptic)
+    assert kept.tobytes() == plain.tobytes()
+
+
+@needs_poppy
 def test_diffraction_psf_env_cache_and_coarse_pixels(tmp_path, monkeypatch):
     monkeypatch.setenv("CLUMPYLEN_CACHE", str(tmp_path))
     # Coarse (detector) pixels: pixel-integrated values, still unit sum and centred.
