@@ -21,10 +21,11 @@ and vs flux and R_e; false clumps per scene (all, and with fitted S/N > 10); pul
 (fit − true)/σ of flux, R_e and β; blends (fitted clumps with several true ones within
 twice the match distance: flux bias). Beside the fit's recovered fraction, the
 detection-only completeness of the same clumps (`--completeness N`, default 8:
-`inference.completeness.completeness_grid`, each true clump's flux and R_e injected round
+`inference.completeness.completeness_grids`, each true clump's flux and R_e injected round
 at N random positions within the catalogue's spread of the host's centre, into the noisy
 image of the host alone, found by photutils segmentation, no fit): what a detection
-catalogue would find of the clumps the fit recovers, plain and with photutils' deblending;
+catalogue would find of the clumps the fit recovers, plain and with photutils' deblending
+(the same injections scored both ways);
 "in a segment" counts a clump inside any segment, the host's included (found but blended:
 no position or flux of its own). The outside check: at S/N > 10, ≥ 90 % recovered,
 |pull| < 3 for flux and size in ≥ 90 % of them, ≤ 1 false clump per scene with S/N > 10.
@@ -253,23 +254,25 @@ def _simulate_and_fit(kind, seed, d: Path, psf: str):
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
 
-def _detection_completeness(prep, true, kind, seed, n_trials, deblend=False):
+def _detection_completeness(prep, true, kind, seed, n_trials):
     """Detection-only completeness of each true clump's flux and R_e (module doc): the
-    diagonal of a `completeness_grid` over the clumps' fluxes × R_e; round clumps of the
-    scene's Sérsic index (the catalogue's q, 0.5–1, is not injected). deblend: photutils'
-    deblending of the segments (`completeness.detect`)."""
+    diagonal of `completeness_grids` over the clumps' fluxes × R_e, the same injections
+    scored plain and with photutils' deblending (`completeness.detect`); round clumps of the
+    scene's Sérsic index (the catalogue's q, 0.5–1, is not injected). Returns (plain
+    completeness, plain in-segment fraction, deblended completeness)."""
     import jax
 
-    from clumpylen_jax.inference.completeness import completeness_grid
+    from clumpylen_jax.inference.completeness import completeness_grids
     from clumpylen_jax.source import Source
-    res = completeness_grid(
+    plain, deblended = completeness_grids(
         Source(bulge=prep.source.bulge, disk=prep.source.disk), prep.bands,
         np.asarray(true["flux"], float), np.asarray(true["re_arcsec"], float),
         jax.random.key(5000 + seed), lens=prep.lens, field_arcsec=prep.field_arcsec,
         n_trials=n_trials, region_arcsec=KINDS[kind]["spread"],
         clump_n=float(prep.source.clumps.n[0]), accuracy=prep.accuracy, fisher=False,
-        deblend=deblend)
-    return np.diag(res.completeness), np.diag(res.detected_fraction)
+        deblend=(False, True))
+    return (np.diag(plain.completeness), np.diag(plain.detected_fraction),
+            np.diag(deblended.completeness))
 
 
 def run_one(kind, seed, work: Path, psf: str = "gaussian", completeness_trials: int = 8):
@@ -287,10 +290,8 @@ def run_one(kind, seed, work: Path, psf: str = "gaussian", completeness_trials: 
     m = _match(true, dist)
     m_iso = _match(true, dist_iso)
     none = np.full(len(true), np.nan)
-    det, det_any = (_detection_completeness(prep, true, kind, seed, completeness_trials)
-                    if completeness_trials else (none, none))
-    det_deb = (_detection_completeness(prep, true, kind, seed, completeness_trials, True)[0]
-               if completeness_trials else none)
+    det, det_any, det_deb = (_detection_completeness(prep, true, kind, seed, completeness_trials)
+                             if completeness_trials else (none, none, none))
     rows = []
     for i, j in enumerate(m):
         q = float(true["q"][i])

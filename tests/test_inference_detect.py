@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from clumpylen_jax.inference.completeness import completeness_grid
+from clumpylen_jax.inference.completeness import completeness_grid, completeness_grids
 from clumpylen_jax.inference.detect import clump_detectability
 from clumpylen_jax.inference.mock import TOY_ACCURACY, toy_bands, toy_model
 from clumpylen_jax.source import Clumps, Source
@@ -40,6 +40,17 @@ def test_completeness_grid_bright_found_faint_missed():
     assert res.fisher_snr_flux[1, 0] > 10 * res.fisher_snr_flux[0, 0]
     assert res.segment_multiplicity[2] >= 1
     assert len(res.to_table()) == 2
+    # `completeness_grids`: the same injections scored plain and deblended; the plain result
+    # is `completeness_grid`'s, field for field
+    plain, deblended = completeness_grids(
+        base, toy_bands(1), [0.02, 3.0], [0.06], jax.random.key(0),
+        field_arcsec=((-0.45, 0.45), (-0.45, 0.45)), positions_arcsec=pos,
+        accuracy=TOY_ACCURACY, fisher=False)
+    for name in ("completeness", "detected_fraction", "blended_fraction",
+                 "segment_multiplicity"):
+        assert np.array_equal(getattr(plain, name), getattr(res, name)), name
+    assert deblended.completeness[1, 0] >= plain.completeness[1, 0]
+    assert deblended.blended_fraction[1, 0] <= plain.blended_fraction[1, 0]
 
 
 def test_deblending_gives_a_clump_on_a_host_a_segment_of_its_own():

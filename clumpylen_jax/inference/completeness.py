@@ -114,11 +114,21 @@ def _centroids(image, seg):
 
 
 def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arcsec, key, *,
-                      lens=None, field_arcsec=None, positions_arcsec=None, n_trials=8,
-                      region_arcsec=None, band=0, nsigma=3.0, npixels=5, match_radius_pix=2.0,
-                      clump_n=0.5, clump_q=1.0, flux_ratios=None, accuracy=None,
-                      fisher=True, deblend=False) -> CompletenessResult:
-    """Injection–recovery completeness over (flux, size) in band index `band`.
+                      deblend=False, **kwargs) -> CompletenessResult:
+    """Injection–recovery completeness over (flux, size): `completeness_grids` with one
+    detection setting (deblend: split the segments by photutils' deblending, `detect`)."""
+    return completeness_grids(base_source, bands, fluxes_counts_per_s, sizes_arcsec, key,
+                              deblend=(deblend,), **kwargs)[0]
+
+
+def completeness_grids(base_source: Source, bands, fluxes_counts_per_s, sizes_arcsec, key, *,
+                       lens=None, field_arcsec=None, positions_arcsec=None, n_trials=8,
+                       region_arcsec=None, band=0, nsigma=3.0, npixels=5, match_radius_pix=2.0,
+                       clump_n=0.5, clump_q=1.0, flux_ratios=None, accuracy=None,
+                       fisher=True, deblend=(False, True)) -> tuple:
+    """Injection–recovery completeness over (flux, size) in band index `band`, one
+    `CompletenessResult` per detection setting of `deblend`, all from the same injections
+    (each trial rendered once, with its own noise, and scored by each setting).
 
     base_source: the scene without the injected clump (host and/or clumps, may be empty of
         clumps; needs at least one component — use a faint host for a blank field).
@@ -129,7 +139,7 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
         radius `region_arcsec` (default 0.3") around the base source's centre.
     nsigma, npixels: photutils detection settings.  match_radius_pix: matching radius.
     fisher: also compute the Fisher-forecast S/N of each injected clump.
-    deblend: split the segments by photutils' deblending (`detect`).
+    deblend: per setting, whether the segments are split by photutils' deblending (`detect`).
     """
     from ..model import Accuracy
 
@@ -153,17 +163,19 @@ def completeness_grid(base_source: Source, bands, fluxes_counts_per_s, sizes_arc
     render_b, iso = _injectors(model, base, ratios, clump_n, clump_q, band)
     base_peaks = [image_peaks(np.asarray(_isolated_base_image(model, base, k, band)))
                   for k in range(n_base)]
-    mult = np.zeros(n_base + 2, int)
-    comp, det, blend = _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks,
-                                       mult, nsigma=nsigma, npixels=npixels,
-                                       match_radius_pix=match_radius_pix, deblend=deblend)
+    deblend = tuple(bool(d) for d in deblend)
+    mults = [np.zeros(n_base + 2, int) for _ in deblend]
+    scores = _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks, mults,
+                             nsigma=nsigma, npixels=npixels, match_radius_pix=match_radius_pix,
+                             deblend=deblend)
     shape = (fluxes.size, sizes.size)
     snr_f = np.full(shape, np.nan)
     snr_r = np.full(shape, np.nan)
     if fisher:
         snr_f, snr_r = _fisher_grid(model, base, pos, fluxes, sizes, ratios, clump_n, clump_q, band)
-    return CompletenessResult(fluxes, sizes, comp, det, blend, snr_f, snr_r, mult, pos,
-                              model.band_names[band])
+    return tuple(CompletenessResult(fluxes, sizes, comp, det, blend, snr_f, snr_r, mult, pos,
+                                    model.band_names[band])
+                 for (comp, det, blend), mult in zip(scores, mults))
 
 
 def _injectors(model, base, ratios, clump_n, clump_q, band):
@@ -182,12 +194,13 @@ def _injectors(model, base, ratios, clump_n, clump_q, band):
     return render_b, iso
 
 
-def _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks, mult, *,
-                    nsigma, npixels, match_radius_pix, deblend=False):
-    """(completeness, detected, blended fractions) [n_flux, n_size]: every trial position of
-    every cell injected, observed with its own noise key, detected and scored."""
+def _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks, mults, *,
+                    nsigma, npixels, match_radius_pix, deblend=(False,)):
+    """Per setting of `deblend` (its `mults` histogram incremented): (completeness, detected,
+    blended fractions) [n_flux, n_size]; every trial position of every cell injected and
+    observed once, with its own noise key, then detected and scored by each setting."""
     n_trials = pos.shape[0]
-    shape = (fluxes.size, sizes.size)
+    shape = (len(deblend), fluxes.size, sizes.size)
     comp = np.zeros(shape)
     det = np.zeros(shape)
     blend = np.zeros(shape)
@@ -201,13 +214,15 @@ def _injection_grid(render_b, iso, pos, fluxes, sizes, k_noise, sky, base_peaks,
             noisy, var = np.asarray(noisy), np.asarray(var)
             for t in range(n_trials):
                 peaks = image_peaks(alone[t]) if f > 0 else np.zeros((0, 2), int)
-                hit, matched, blended = _score_trial(
-                    noisy[t] - sky, np.sqrt(var[t]), peaks, base_peaks, mult, nsigma=nsigma,
-                    npixels=npixels, match_radius_pix=match_radius_pix, deblend=deblend)
-                det[i, j] += hit
-                comp[i, j] += matched
-                blend[i, j] += blended
-    return comp / n_trials, det / n_trials, blend / n_trials
+                for d, (split, mult) in enumerate(zip(deblend, mults)):
+                    hit, matched, blended = _score_trial(
+                        noisy[t] - sky, np.sqrt(var[t]), peaks, base_peaks, mult, nsigma=nsigma,
+                        npixels=npixels, match_radius_pix=match_radius_pix, deblend=split)
+                    det[d, i, j] += hit
+                    comp[d, i, j] += matched
+                    blend[d, i, j] += blended
+    return [(comp[d] / n_trials, det[d] / n_trials, blend[d] / n_trials)
+            for d in range(len(deblend))]
 
 
 def _random_positions(base_source, accuracy, key, n_trials, region_arcsec):
