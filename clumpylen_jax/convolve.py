@@ -7,6 +7,7 @@ spreads beyond the frame is lost, never wrapped around to the other side.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.fft
@@ -49,7 +50,8 @@ def kernel_rfft(kernel, image_shape, dtype=np.float64):
     """The kernel's rfft2 on the padded grid used by `fft_convolve` (precompute once per band)."""
     k = check_kernel(kernel)
     shape = fft_shape(image_shape, k.shape)
-    return jnp.asarray(np.fft.rfft2(k.astype(dtype), s=shape))
+    # device_put, not jnp.asarray: the latter compiles a small program per shape
+    return jax.device_put(np.fft.rfft2(k.astype(dtype), s=shape))
 
 
 def fft_convolve(image, kernel_ft, kernel_shape):

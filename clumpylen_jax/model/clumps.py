@@ -230,7 +230,7 @@ class SourceGridClumps(eqx.Module):
                                               (b2 - grid.y0_arcsec) / p + 1.0,
                                               (grid.ny + 2, grid.nx + 2))
         return cls(grid, tuple(side for side, _ in groups),
-                   tuple(jnp.asarray(i) for _, i in groups), jnp.asarray(slot_map), layout,
+                   tuple(jax.device_put(i) for _, i in groups), jax.device_put(slot_map), layout,
                    accuracy.source_order, accuracy.exact_core)
 
     def groups(self):
@@ -361,7 +361,7 @@ class LinearisedClumps(eqx.Module):
             # (side, strip) groups: the exact strip for images with light beyond the core
             g = render.strip_groups(re, n, pixel, accuracy.exact_core,
                                     flux_fraction=accuracy.stamp_flux_fraction)
-            return tuple(k for k, _ in g), tuple(jnp.asarray(i) for _, i in g)
+            return tuple(k for k, _ in g), tuple(jax.device_put(i) for _, i in g)
 
         per_pixel = {}
         sides, index = [], []
