@@ -603,14 +603,15 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
         # the groups' clump indices, one array: tiles and exact pixels are gathered from it
         indices = [idx if isinstance(idx, jax.Array) else np.asarray(idx)
                    for _, idx, *_ in groups]
-        traced = any(isinstance(idx, jax.Array) for idx in indices)
         thin_of = [(group_strip[0] if group_strip else strip) and min(core, side) > 0
                    for side, _, *group_strip in groups]
         # what the thin groups' strips need of their clumps, gathered once for all of them
         thin = _thin_clumps(clumps, [idx for idx, t in zip(indices, thin_of) if t], ic, jc)
+        sizes = [idx.shape[0] for idx in indices]
+        indices = _joined(indices)
         tiles, pieces, offset, thin_offset = _Pieces(), _Pieces(), 0, 0
-        for (side, *_), idx, is_thin in zip(groups, indices, thin_of):
-            n, m, half = idx.shape[0], side // tile, side // 2
+        for (side, *_), n, is_thin in zip(groups, sizes, thin_of):
+            m, half = side // tile, side // 2
             # the tiles of each stamp, row-major: tile (r, c) has its pixel [0, 0] at
             # stamp pixel (r t, c t)
             tr, tc = np.divmod(np.arange(m * m), m)
@@ -626,21 +627,18 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                     at_tile = (start + np.arange(n)[:, None] * (m * m)
                                + _div(row, tile) * m + _div(col, tile))
                     at_pixel = _rem(row, tile) * tile + _rem(col, tile)
-                    count = row.shape[1]
                 else:       # the core block: the same pixels of every stamp
                     row, col = np.divmod(_core_pixels(side, c)[None, :], side)
                     at_tile = (start + np.arange(n)[:, None] * (m * m)
                                + (row // tile) * m + col // tile)
                     row, col, at_pixel = (np.broadcast_to(v, at_tile.shape) for v in
                                           (row, col, (row % tile) * tile + col % tile))
-                    count = row.shape[1]
+                count = row.shape[1]
                 pieces.add(*(v.astype(np.int32) for v in (
                     offset + np.repeat(np.arange(n), count), col - half, row - half, at_tile,
                     at_pixel)))
             start += n * m * m
             offset += n
-        indices = (jnp.concatenate(indices) if traced else np.concatenate(indices)) \
-            if len(indices) > 1 else indices[0]
         t_which, dc, dr = tiles.joined()
         t_which = indices[t_which]
         which.add(t_which)
@@ -653,16 +651,15 @@ def grouped_stamps_on(clumps: Clumps, targets, *, order: int = 3, core: int = 5,
                       *_pixel_edges(ic[ew] + dcol, grid.x0_arcsec, p, dtype),
                       *_pixel_edges(jc[ew] + drow, grid.y0_arcsec, p, dtype))
         ranges.append((first, start))
-    (which,) = which.joined()
+    which = jnp.asarray(which.joined()[0])
     ti0, tj0 = jnp.concatenate(ti0), jnp.concatenate(tj0)
-    stamps = _sampled_tiles(clumps, b, jnp.asarray(which), ti0, tj0,
+    stamps = _sampled_tiles(clumps, b, which, ti0, tj0,
                             [grid for grid, _ in targets], [lo for lo, _ in ranges], tile, order)
     if exact:
         ew, at_tile, at_pixel, *edges = exact.joined()
         values = _exact_fluxes(clumps, b, jnp.asarray(ew), *edges)
         stamps = (stamps.reshape(start, tile * tile).at[at_tile, at_pixel]
                   .set(values.astype(dtype)).reshape(start, tile, tile))
-    which = jnp.asarray(which)
     for t, (lo, hi) in enumerate(ranges):
         if hi > lo:
             out[t].append((stamps[lo:hi], ti0[lo:hi], tj0[lo:hi], which[lo:hi]))
@@ -694,13 +691,16 @@ class _Pieces:
 
     def joined(self):
         """Each column as one array (NumPy when it has no traced piece)."""
-        out = []
-        for col in self.columns:
-            if len(col) == 1:
-                out.append(col[0])
-            else:
-                out.append(jnp.concatenate([jnp.asarray(x) for x in col]))
-        return out
+        return [_joined(col) for col in self.columns]
+
+
+def _joined(arrays):
+    """1-D arrays, NumPy or traced, as one: NumPy when all are (a constant of the program)."""
+    if len(arrays) == 1:
+        return arrays[0]
+    if any(isinstance(a, jax.Array) for a in arrays):
+        return jnp.concatenate(arrays)
+    return np.concatenate(arrays)
 
 
 def _thin_clumps(clumps: Clumps, indices, ic, jc):
@@ -708,9 +708,7 @@ def _thin_clumps(clumps: Clumps, indices, ic, jc):
     index arrays `indices` (NumPy or traced) one after the other; None without any."""
     if not indices:
         return None
-    idx = (indices[0] if len(indices) == 1 else
-           jnp.concatenate(indices) if any(isinstance(i, jax.Array) for i in indices)
-           else np.concatenate(indices))
+    idx = _joined(indices)
     return [ic[idx], jc[idx], clumps.center_arcsec[idx, 0], clumps.center_arcsec[idx, 1],
             clumps.pa_rad[idx]]
 

@@ -608,7 +608,7 @@ def test_a_rejected_host_move_that_fits_as_well_is_kept_as_an_alternative(monkey
 
 
 def test_host_alternative_flag_marks_clumps_whose_flux_the_alternative_moves():
-    """`host_alternative_flag`: flagged where the nearest alternative clump (within
+    """`host_alternative_fluxes`' flags: flagged where the nearest alternative clump (within
     max(match, R_e)) has a flux more than ALTERNATIVE_SIGMA σ away in a band, or where the
     alternative has no clump there (its light went to the host); a band with NaN σ counts
     not; no alternatives flags nothing."""
@@ -618,7 +618,7 @@ def test_host_alternative_flag_marks_clumps_whose_flux_the_alternative_moves():
     re = np.array([0.02, 0.02, 0.02, 0.02])
     alt = (np.array([[0.01, 0.0], [0.3, 0.005], [-0.3, 0.0]]),
            np.array([[10.5, 4.0], [6.0, 5.0], [10.0, 20.0]]))
-    flag = auto.host_alternative_flag(centre, flux, err, re, [alt], 0.06)
+    flag = auto.host_alternative_fluxes(centre, flux, err, re, [alt], 0.06)[0]
     # within 1σ; 4σ in the first band; no clump near (0, 0.3); 15σ only where σ is NaN
     assert flag.tolist() == [False, True, True, False]
     # the alternative's flux of each flagged clump (0: none there); of another, NaN; of two
@@ -633,13 +633,12 @@ def test_host_alternative_flag_marks_clumps_whose_flux_the_alternative_moves():
         assert np.allclose(fl[1], [6.0, 5.0]) and np.allclose(fl[2], 0.0)
         assert np.isnan(fl[3]).all()
         assert np.isnan(fl[0]).all() if len(alts) == 1 else np.allclose(fl[0], [13.0, 5.0])
-    assert not auto.host_alternative_flag(centre, flux, err, re, [], 0.06).any()
+    assert not auto.host_alternative_fluxes(centre, flux, err, re, [], 0.06)[0].any()
     # a broad clump matches farther than `match_arcsec`: R_e 0.1" reaches (0.08, 0)
     far = (np.array([[0.08, 0.0]]), np.array([[10.2, 5.1]]))
-    assert auto.host_alternative_flag(centre[:1], flux[:1], err[:1], [0.1], [far], 0.06).tolist() \
-        == [False]
-    assert auto.host_alternative_flag(centre[:1], flux[:1], err[:1], [0.02], [far], 0.06).tolist() \
-        == [True]
+    for re_far, want in ((0.1, False), (0.02, True)):
+        got = auto.host_alternative_fluxes(centre[:1], flux[:1], err[:1], [re_far], [far], 0.06)
+        assert got[0].tolist() == [want]
 
 
 @pytest.mark.slow

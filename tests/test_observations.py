@@ -636,7 +636,7 @@ def test_flags_share_the_mock_fits_bits_and_mark_unresolved_sizes():
                            FLAGS["position_at_box_edge"], FLAGS["size_unresolved"]]
     held = _flags(fit, frame, pix, opts, np.full(4, np.nan) > np.asarray(re))
     assert list(held) == [0, FLAGS["re_at_bound"], FLAGS["position_at_box_edge"], 0]
-    # 64 where the counting's host alternative moves the clump (`host_alternative_flag`)
+    # 64 where the counting's host alternative moves the clump (`host_alternative_fluxes`)
     alt = _flags(fit, frame, pix, opts, np.full(4, np.nan) > np.asarray(re),
                  np.array([True, False, False, True]))
     assert list(alt) == [FLAGS["host_alternative"], FLAGS["re_at_bound"],

@@ -761,21 +761,15 @@ def host_alternatives(steps) -> list:
             for st in steps if "alternative" in st]
 
 
-def host_alternative_flag(center_arcsec, flux, flux_err, re_arcsec, alternatives,
-                          match_arcsec: float) -> np.ndarray:
-    """[N] bool: clump i (centre [N, 2] arcsec, flux and its σ [N, B], R_e [N] arcsec) has, in
-    one of `alternatives` (`host_alternatives`), no clump within max(match_arcsec, R_e,i) or
-    the nearest one's flux more than ALTERNATIVE_SIGMA σ away in a band."""
-    return host_alternative_fluxes(center_arcsec, flux, flux_err, re_arcsec, alternatives,
-                                   match_arcsec)[0]
-
-
 def host_alternative_fluxes(center_arcsec, flux, flux_err, re_arcsec, alternatives,
                             match_arcsec: float):
-    """(`host_alternative_flag`'s [N] bool, the flux [N, B] each flagged clump has in the
-    alternative that moves it most): a clump the alternative has no clump for has 0 there
-    (its light is the host's); one no alternative flags, NaN. "Most": the largest flux
-    change in σ over the bands (no counterpart: more than any)."""
+    """([N] bool: clump i (centre [N, 2] arcsec, flux and its σ [N, B], R_e [N] arcsec) has,
+    in one of `alternatives` (`host_alternatives`), no clump within max(match_arcsec, R_e,i)
+    or the nearest one's flux more than ALTERNATIVE_SIGMA σ away in a band (flag 64); the
+    flux [N, B] each flagged clump has in the alternative that moves it most): a clump the
+    alternative has no clump for has 0 there (its light is the host's); one no alternative
+    flags, NaN. "Most": the largest flux change in σ over the bands (no counterpart: more
+    than any)."""
     center_arcsec = np.asarray(center_arcsec, float).reshape(-1, 2)
     flux, flux_err = np.asarray(flux, float), np.asarray(flux_err, float)
     out = np.zeros(len(center_arcsec), bool)

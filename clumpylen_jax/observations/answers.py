@@ -221,9 +221,8 @@ def _alternative_columns(t, alt_flux, observations):
     alternative moves it and where the alternative gives its light to the host."""
     for b, ob in enumerate(observations):
         F = alt_flux[:, b]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t[f"mag_alt_{ob.name}"] = np.where(F > 0, ab_magnitude(np.where(F > 0, F, 1.0),
-                                                                   ob.zeropoint_ab), np.nan)
+        t[f"mag_alt_{ob.name}"] = np.where(F > 0, ab_magnitude(np.where(F > 0, F, 1.0),
+                                                               ob.zeropoint_ab), np.nan)
 
 
 def _mass_columns(t, flux, f_err, observations, scene, mu):
@@ -240,7 +239,7 @@ def _mass_columns(t, flux, f_err, observations, scene, mu):
 
 def _flags(fit, frame, pix, opts, unresolved, host_alternative=None):
     """The flag bits (module doc; `inference.auto.FLAGS`); `unresolved`: σ(R_e) > R_e;
-    `host_alternative`: `inference.auto.host_alternative_flag`'s, or None."""
+    `host_alternative`: `inference.auto.host_alternative_fluxes`' flags, or None."""
     from ..inference.auto import FLAGS
     flag = np.zeros(len(pix), int)
     if not fit.success:
