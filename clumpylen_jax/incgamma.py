@@ -104,6 +104,27 @@ def _p_series(a, coef, x, lg):
     return jnp.exp(a * jnp.log(x) - x - lg - jnp.log(a)) * total
 
 
+# Terms of `p_lower_series`: for x ≤ a ≤ 20, term k is below 1e-20 of the sum by k ≈ 60
+# (they fall off as e^{−k²/2a} once k ≳ a − x); tests/test_incgamma.py checks b(n) to 1e-14
+_LOWER_SERIES_TERMS = 96
+
+
+def p_lower_series(a, x):
+    """P(a, x) = x^a e^{−x} / Γ(a + 1) Σ_k x^k / ((a+1)…(a+k)), summed to a fixed
+    `_LOWER_SERIES_TERMS` terms: float64-exact for 0 < x ≤ a ≤ 20 (Sérsic b(n), n ≤ 10:
+    b < 2n = a), differentiable in a and x. A loop of four operations: it compiles in a
+    third of `jax.scipy.special.gammainc`'s time (~0.4 s less per program that solves
+    for b(n), measured), whose series and continued fraction serve any x."""
+    def add_term(k, state):
+        term, total = state
+        term = term * x / (a + k)
+        return term, total + term
+
+    one = jnp.ones(jnp.broadcast_shapes(jnp.shape(a), jnp.shape(x)), jnp.result_type(a, x))
+    _, total = jax.lax.fori_loop(1, _LOWER_SERIES_TERMS, add_term, (one, one))
+    return jnp.exp(a * jnp.log(x) - x - gammaln(a + 1)) * total
+
+
 def x_floor(dtype):
     """x below which Q(a, x) is taken as exactly 1 (P as 0): tiny / eps (1e-31 in float32,
     1e-292 in float64), so that x, 1/x and the products of the gradient stay clear of the

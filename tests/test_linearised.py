@@ -255,14 +255,15 @@ def test_linearised_flux_follows_the_magnification_averaged_over_the_clump():
 def test_magnifications_beside_band_images_are_the_standalone_ones(cluster_hybrid):
     """`clump_magnifications(beside_band_images=True)` (the band render's program computes
     them from the stamps it makes for the band images, no exact-pixel kernel of their own)
-    gives the standalone program's values to the bit, for linearised and ray-traced clumps,
-    and leaves the band images as they are."""
+    gives the standalone program's values to rounding (two programs, fused differently by
+    XLA: 1 ulp apart in one clump), for linearised and ray-traced clumps, and leaves the
+    band images as they are (to the bit)."""
     src, bands, kw, hyb = cluster_hybrid
     assert hyb.clumps.traced is not None and hyb.clumps.linearised is not None
     alone = np.asarray(eqx.filter_jit(lambda m, s: m.clump_magnifications(s))(hyb, src))
     images, mags = eqx.filter_jit(lambda m, s: (
         m.band_images(s), m.clump_magnifications(s, beside_band_images=True)))(hyb, src)
-    np.testing.assert_array_equal(np.asarray(mags), alone)
+    np.testing.assert_allclose(np.asarray(mags), alone, rtol=4 * np.finfo(float).eps, atol=0)
     only = eqx.filter_jit(lambda m, s: m.band_images(s))(hyb, src)
     np.testing.assert_array_equal(np.asarray(images[0]), np.asarray(only[0]))
 

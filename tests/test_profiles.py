@@ -23,6 +23,31 @@ def test_sersic_b_exact(n):
     assert abs(b / ref - 1) < 1e-6
 
 
+def test_sersic_b_to_rounding_over_the_whole_range_in_both_dtypes():
+    """b(n) solves P(2n, b) = 1/2 with P by its power series (`incgamma.p_lower_series`):
+    to float64 rounding (and float32's) on a dense grid of the scene's range 0.2 ≤ n ≤ 10,
+    against scipy's inverse."""
+    n = np.linspace(0.2, 10.0, 4001)
+    ref = special.gammaincinv(2 * n, 0.5)
+    b64 = np.asarray(profiles.sersic_b(jnp.asarray(n)))
+    b32 = np.asarray(profiles.sersic_b(jnp.asarray(n, jnp.float32)))
+    assert np.max(np.abs(b64 / ref - 1)) < 2e-14
+    assert b32.dtype == np.float32 and np.max(np.abs(b32 / ref - 1)) < 1e-5
+
+
+def test_sersic_b_of_a_profile_does_not_depend_on_the_others_solved_with_it():
+    """A clump's b(n) has the same bits whether it is solved alone or beside others (one
+    array of n). jax's gammainc, in the solve before, gave 15 of 384 values 1 ulp apart
+    when two arrays were joined."""
+    rng = np.random.default_rng(2)
+    one = jax.jit(profiles.sersic_b)
+    joint = jax.jit(lambda x, y: profiles.sersic_b(jnp.concatenate([x, y])))
+    for _ in range(12):
+        a, c = (jnp.asarray(rng.uniform(0.2, 10, k)) for k in rng.integers(1, 12, 2))
+        np.testing.assert_array_equal(np.asarray(joint(a, c)),
+                                      np.concatenate([np.asarray(one(a)), np.asarray(one(c))]))
+
+
 def test_axis_rms_per_re_against_closed_forms():
     """Gaussian (n = 0.5): σ = R_e/√(2 ln 2). Exponential (n = 1, scale h = R_e/b): <r²> = 6h²,
     so σ per axis = √3 h. Numerical: the moment integral of the profile itself."""
