@@ -113,9 +113,16 @@ def safe_sqrt(x2):
 
 
 def safe_pow(x, p):
-    """x**p for x ≥ 0 with a finite gradient at x = 0 (returns 0 there)."""
+    """x**p for x ≥ 0 with a finite gradient at x = 0 (returns 0 there).
+
+    float64 as exp(p ln x): XLA's CPU code calls libm's scalar pow per element (48 ns
+    against 20 ns, ~4 % of a cold `simulate`'s CPU), and exp(p ln x) is within 1.2e-14 of
+    it for the profiles' p ≤ 5. float32 keeps pow: exp(p ln x) is 6e-6 off there."""
     ok = x > 0
-    return jnp.where(ok, jnp.where(ok, x, 1.0) ** p, 0.0)
+    xs = jnp.where(ok, x, 1.0)
+    if jnp.result_type(xs) == jnp.float64:
+        return jnp.where(ok, jnp.exp(p * jnp.log(xs)), 0.0)
+    return jnp.where(ok, xs ** p, 0.0)
 
 
 def safe_atan2(y, x):
