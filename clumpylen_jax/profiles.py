@@ -35,6 +35,7 @@ def _series_newton_step(_, state):
 
 
 def _newton_update(a, p, logx, lower_gamma):
+    """log x after one Newton step on P(a, x) = p, P by `lower_gamma` (a function (a, x))."""
     x = jnp.exp(logx)
     f = lower_gamma(a, x) - p
     # dP/dlogx = x^a e^-x / Γ(a), evaluated in logs to avoid overflow.
