@@ -105,7 +105,8 @@ def _p_series(a, coef, x, lg):
 
 
 # Terms of `p_lower_series`: for x ≤ a ≤ 20, term k is below 1e-20 of the sum by k ≈ 60
-# (they fall off as e^{−k²/2a} once k ≳ a − x); tests/test_incgamma.py checks b(n) to 1e-14
+# (they fall off as e^{−k²/2a} once k ≳ a − x); tests/test_incgamma.py checks P against
+# scipy to 1e-13, tests/test_profiles.py b(n) to 2e-14
 _LOWER_SERIES_TERMS = 96
 
 
