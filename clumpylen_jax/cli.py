@@ -261,8 +261,8 @@ def _cmd_fit_observations(args) -> int:
         scene = dataclasses.replace(scene, observations=tuple(
             dataclasses.replace(o, image=os.path.abspath(images.get(o.filter, o.image)))
             for o in scene.observations))
-    if args.method != "map":
-        raise ConfigError("--method", args.method, '"map" for fits of observations (samplers: not yet)')
+    if args.method is not None:   # the command line wins over [fit] method
+        scene = dataclasses.replace(scene, fit=dataclasses.replace(scene.fit, method=args.method))
     out = os.path.abspath(args.out)
     if os.path.exists(out) and not os.path.isdir(out):
         raise ConfigError("--out", args.out, "a directory (this path is a file)")
@@ -316,7 +316,7 @@ def _cmd_fit(args) -> int:
                               f"the scene's detector grid for {band}, shape {shapes[band]}")
     order = [lay.name for lay in prep.model.layouts]
     out = os.path.abspath(args.out)
-    if args.method == "map":
+    if args.method in (None, "map"):
         # no catalogue: clumps found, seeded and counted from the images (inference/auto.py)
         from .inference.auto_run import run_auto_fit
         run_auto_fit(prep, [data[b] for b in order],
@@ -329,7 +329,7 @@ def _cmd_fit(args) -> int:
     run_sampled_fit(prep, [data[b] for b in order], [variances[b] for b in order] if variances else None,
                     method=args.method, out_dir=out)
     if not args.quiet:
-        print(f"wrote {out} (fit.ecsv, residuals{', chains.npz' if args.method != 'map' else ''})")
+        print(f"wrote {out} (fit.ecsv, residuals, chains.npz)")
     return EXIT_OK
 
 
@@ -497,8 +497,9 @@ def _add_run_commands(sub) -> None:
                    help="an image to fit (SCI HDU or the first 2-D image; a VARIANCE extension is "
                    "used if present); with [[observations]], replaces that band's image")
     q.add_argument("--out", "-o", required=True, metavar="DIR", help="output directory")
-    q.add_argument("--method", default="map", choices=("map", "emcee", "nuts"),
-                   help="map (default), emcee or nuts")
+    q.add_argument("--method", choices=("map", "emcee", "nuts"),
+                   help="map (the default; with [[observations]], the scene's [fit] method), "
+                   "or the posterior sampled from the optimum by emcee or nuts")
     q.add_argument("--seed", type=int, help="override the scene's seed (clump catalogue)")
     q.add_argument("--quiet", "-q", action="store_true", help="no output")
     q.add_argument("--no-cache", action="store_true",

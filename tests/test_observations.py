@@ -250,6 +250,14 @@ def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
     with pytest.raises(ConfigError, match="fit.clump_re_max_arcsec"):
         parse_observation_scene({"observations": doc["observations"],
                                  "fit": {"clump_re_max_arcsec": -1.0}})
+    # the samplers ([fit] method, SCENE.md) and their settings, checked before anything runs
+    sc = parse_observation_scene({"observations": doc["observations"],
+                                  "fit": {"method": "nuts", "sampler_samples": 50}})
+    assert sc.fit.method == "nuts" and sc.fit.sampler_samples == 50
+    for key, bad in (("method", "hmc"), ("sampler_samples", 5), ("sampler_chains", 0),
+                     ("sampler_warmup", -1)):
+        with pytest.raises(ConfigError, match=f"fit.{key}"):
+            parse_observation_scene({"observations": doc["observations"], "fit": {key: bad}})
 
 
 # ----------------------------------------------------------------------------- a mock fitted back
@@ -626,7 +634,7 @@ def test_flags_share_the_mock_fits_bits_and_mark_unresolved_sizes():
     from clumpylen_jax.pixels import Grid
     opts = FitOptions()
     re = jnp.asarray([0.05, opts.clump_re_min_arcsec, 0.05, 0.05])
-    fit = types.SimpleNamespace(success=True, state=types.SimpleNamespace(
+    fit = types.SimpleNamespace(success=True, clump_unconverged=None, state=types.SimpleNamespace(
         source=types.SimpleNamespace(clumps=types.SimpleNamespace(re_arcsec=re))))
     frame = types.SimpleNamespace(grids=[Grid(0.0, 0.0, 0.03, 20, 20)])
     pix = np.array([[10.0, 10.0], [10.0, 10.0], [0.2, 10.0], [10.0, 10.0]])
@@ -641,6 +649,11 @@ def test_flags_share_the_mock_fits_bits_and_mark_unresolved_sizes():
                  np.array([True, False, False, True]))
     assert list(alt) == [FLAGS["host_alternative"], FLAGS["re_at_bound"],
                          FLAGS["position_at_box_edge"], FLAGS["host_alternative"]]
+    # 1 where a sampler's chains did not mix for that clump (`sample.unmixed_clumps`)
+    fit.clump_unconverged = np.array([False, False, True, False])
+    mixed = _flags(fit, frame, pix, opts, np.full(4, np.nan) > np.asarray(re))
+    assert list(mixed) == [0, FLAGS["re_at_bound"],
+                           FLAGS["position_at_box_edge"] | FLAGS["not_converged"], 0]
 
 
 def test_alternative_magnitudes_are_the_alternatives_fluxes_in_ab():
@@ -697,3 +710,76 @@ def test_final_images_drawn_by_the_counting_model_are_the_fits_own():
     assert np.allclose(chi2_r, chi2, rtol=1e-12, atol=0)
     for a, b in zip(images_r, images):
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
+
+
+def test_fit_method_nuts_samples_the_observed_fit_from_its_optimum(tmp_path):
+    """`clumpylen fit SCENE --method nuts` on the two-band mock (clumps started off the truth):
+    the sampler runs from the joint fit's optimum and the catalogue reports the chains'
+    median and standard deviation (checked against chains.npz), summary.json the sampler's
+    diagnostics, fit.ecsv's header that its errors are posterior ones. A short run: the
+    slow suite's mock pull test is where accuracy is judged."""
+    import json
+
+    from astropy.table import Table
+    scene, truth, frame, zps = _mock_scene(tmp_path)
+    text = open(scene).read() + "sampler_chains = 1\nsampler_warmup = 40\nsampler_samples = 40\n"
+    open(scene, "w").write(text)
+    assert main(["fit", scene, "--out", str(tmp_path / "out"), "-q", "--method", "nuts"]) == 0
+    out = tmp_path / "out"
+    t = Table.read(out / "fit.ecsv")
+    summary = json.loads((out / "summary.json").read_text())
+    s = summary["sampler"]
+    assert s["method"] == "nuts" and s["chains"] == 1 and s["draws_per_chain"] == 40
+    assert s["divergent"] == 0 and 0.3 < s["acceptance"] <= 1.0
+    assert t.meta["errors"] == "posterior (nuts)"
+    with np.load(out / "chains.npz") as c:
+        labels = list(c["labels"])
+        x = c["samples_x"].reshape(-1, len(labels))
+        assert c["samples_x"].shape == (1, 40, summary["n_free"]) and np.all(np.isfinite(x))
+    for i in range(2):
+        k = labels.index(f"clumps.flux[{i},0]")
+        flux, err = np.median(x[:, k]), np.std(x[:, k], ddof=1)
+        mag, mag_err = zps[0] - 2.5 * np.log10(flux), 2.5 / np.log(10) * err / flux
+        assert abs(t["mag_F150W"][i] - mag) < 1e-9 and abs(t["mag_F150W_err"][i] - mag_err) < 1e-9
+        k = labels.index(f"clumps.re_arcsec[{i}]")
+        assert abs(t["re_arcsec"][i] - np.median(x[:, k])) < 1e-12
+    assert all(0.8 < v < 1.25 for v in summary["chi2_per_dof"].values())
+    assert [st["stage"] for st in summary["steps"]][-1] == "nuts"
+
+
+def test_unmixed_chains_flag_only_their_clumps():
+    """A clump is flagged "not converged" (bit 1) when R̂ of one of its own parameters is above
+    the limit or not finite; the host's R̂ flags no clump."""
+    from types import SimpleNamespace
+
+    from clumpylen_jax.observations.sample import unmixed_clumps
+    chains = SimpleNamespace(
+        labels=("bulge.n[]", "clumps.flux[0,0]", "clumps.flux[1,1]", "clumps.re_arcsec[2]",
+                "clumps.re_arcsec[11]", "background[0]"),
+        rhat=np.array([3.0, 1.01, 1.2, np.nan, 1.05, 2.0]))
+    np.testing.assert_array_equal(unmixed_clumps(chains, 12),
+                                  [False, True, True] + [False] * 9)
+    np.testing.assert_array_equal(unmixed_clumps(chains, 12, rhat_max=1.001),
+                                  [True, True, True] + [False] * 8 + [True])
+
+
+@pytest.mark.slow
+def test_fit_method_emcee_from_the_scene_writes_walkers_chains(tmp_path):
+    """`[fit] method = "emcee"` (no --method): 2 × parameters + 2 walkers started around the
+    optimum; burn-in = sampler_warmup steps dropped; the catalogue is the walkers' median."""
+    import json
+
+    from astropy.table import Table
+    scene, truth, frame, zps = _mock_scene(tmp_path)
+    text = open(scene).read() + 'method = "emcee"\nsampler_warmup = 20\nsampler_samples = 30\n'
+    open(scene, "w").write(text)
+    assert main(["fit", scene, "--out", str(tmp_path / "out"), "-q"]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    n = summary["n_free"]
+    assert summary["sampler"]["method"] == "emcee" and summary["sampler"]["chains"] == 2 * n + 2
+    t = Table.read(tmp_path / "out" / "fit.ecsv")
+    assert t.meta["errors"] == "posterior (emcee)"
+    with np.load(tmp_path / "out" / "chains.npz") as c:
+        assert c["samples_x"].shape == (2 * n + 2, 30, n)
+        k = list(c["labels"]).index("clumps.re_arcsec[1]")
+        assert abs(t["re_arcsec"][1] - np.median(c["samples_x"][..., k])) < 1e-12

@@ -7,7 +7,7 @@ Modules (one job each):
     likelihood    Gaussian / model-variance Gaussian / Poisson (Cash) log-likelihoods
     optimize      MAP with optimistix (Levenberg–Marquardt, BFGS), vmapped multi-start
     uncertainty   Fisher matrix, Laplace approximation, delta method
-    mcmc          emcee (vectorised walkers) and NUTS (blackjax)
+    mcmc          emcee (vectorised walkers) and NUTS (blackjax; whitened by a Laplace metric)
     diagnostics   split-R̂ and effective sample size
     detect        Fisher-forecast S/N of clump fluxes and sizes
     completeness  injection–recovery completeness with photutils segmentation

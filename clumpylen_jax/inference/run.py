@@ -127,8 +127,7 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
                        "host": _host_meta(state, param, err)})
     files = []
     if out_dir is not None:
-        files = _write_fit_files(Path(out_dir), table, chains, param, method, scene_model, data,
-                                 state)
+        files = _write_fit_files(Path(out_dir), table, chains, scene_model, data, state)
     return FitRun(res, state, unc, table, chains, tuple(files))
 
 
@@ -159,18 +158,25 @@ def _sample_posterior(method, scene_model, data, param, u_start, key, seed, mcmc
     return chains, state, err, unc
 
 
-def _write_fit_files(out: Path, table, chains, param, method, scene_model, data, state) -> list:
+def write_chains(path: Path, chains: ChainResult) -> Path:
+    """chains.npz (atomically): samples_x, samples_u [chains, draws, parameters],
+    log_posterior, labels, acceptance, ess, rhat, autocorr_time, method."""
+    from ..io import atomic_write
+    with atomic_write(path, "wb") as fh:
+        np.savez(fh, samples_x=chains.samples_x, samples_u=chains.samples_u,
+                 log_posterior=chains.log_posterior, labels=np.array(chains.labels),
+                 acceptance=chains.acceptance, ess=chains.ess, rhat=chains.rhat,
+                 autocorr_time=chains.autocorr_time, method=chains.method)
+    return path
+
+
+def _write_fit_files(out: Path, table, chains, scene_model, data, state) -> list:
     """Write fit.ecsv, chains.npz (sampled methods) and residuals_<band>.fits in out; their paths."""
-    from ..io import atomic_write, write_catalog
+    from ..io import write_catalog
     out.mkdir(parents=True, exist_ok=True)
     write_catalog(out / "fit.ecsv", table)
     files = [out / "fit.ecsv"]
     if chains is not None:
-        with atomic_write(out / "chains.npz", "wb") as fh:
-            np.savez(fh, samples_x=chains.samples_x, samples_u=chains.samples_u,
-                     log_posterior=chains.log_posterior, labels=np.array(param.labels),
-                     acceptance=chains.acceptance, ess=chains.ess, rhat=chains.rhat,
-                     autocorr_time=chains.autocorr_time, method=method)
-        files.append(out / "chains.npz")
+        files.append(write_chains(out / "chains.npz", chains))
     files += _write_residuals(out, scene_model, data, state)
     return files

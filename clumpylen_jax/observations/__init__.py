@@ -5,6 +5,7 @@
     read      one band: image, σ², mask, PSF, units (ObservationSpec → Observation)
     config    [[observations]], [fit], [lens.local] from a scene file
     fit       the joint host + clumps fit on the data's pixels (fit_observations)
+    sample    its posterior sampled from the optimum (NUTS, emcee): [fit] method
     answers   physical answers: positions, sizes, magnitudes, masses, intrinsic values
     outputs   fit.ecsv, residuals_<FILTER>.fits, clumps.reg, summary.json, fit.png
     products  a cutout written as JWST i2d / HST drz products (mocks in real formats)

@@ -1,7 +1,8 @@
 """Physical answers of a fit of observations: positions, sizes, magnitudes, masses, intrinsic values.
 
 Per clump (SCENE.md `fit.ecsv` columns; every value followed by `<name>_err`, 1σ
-from the Fisher covariance, propagated linearly):
+from the Fisher covariance, or the posterior samples' one where sampled (sample.py),
+propagated linearly):
 - `x_pix`, `y_pix` (0-based pixels of the first observation), `theta1_arcsec`,
   `theta2_arcsec` (DESIGN.md θ frame, relative to the first observation's centre),
   `ra_deg`, `dec_deg` where there is a celestial WCS;
@@ -19,7 +20,7 @@ from the Fisher covariance, propagated linearly):
   included as they are) with a 5 % calibration floor; median and half the
   16–84 % width reported.
 - `flag` (bits of `inference.auto.FLAGS`, as in mock-image fits): 0 fine; 1 the fit did
-  not converge; 2 the R_e hit a prior bound; 4 the clump sits within a pixel of the field's
+  not converge (sampled: R̂ of one of the clump's parameters above `sample.RHAT_MAX`); 2 the R_e hit a prior bound; 4 the clump sits within a pixel of the field's
   edge; 16 the size is unresolved (σ(R_e) > R_e: read R_e as an upper limit); 64 the
   counting found the host's light shared otherwise nearly as well (`clumps = "auto"`: a host
   move rejected for its extra clump only) with this clump's flux > 2σ away or gone: its
@@ -244,6 +245,8 @@ def _flags(fit, frame, pix, opts, unresolved, host_alternative=None):
     flag = np.zeros(len(pix), int)
     if not fit.success:
         flag |= FLAGS["not_converged"]
+    if fit.clump_unconverged is not None:
+        flag |= np.where(fit.clump_unconverged, FLAGS["not_converged"], 0)
     g0 = frame.grids[0]
     edge = (pix[:, 0] < 1) | (pix[:, 1] < 1) | (pix[:, 0] > g0.nx - 2) | (pix[:, 1] > g0.ny - 2)
     flag |= np.where(edge, FLAGS["position_at_box_edge"], 0)

@@ -28,7 +28,7 @@ from typing import Optional
 from ..errors import ConfigError
 from .read import ObservationSpec
 
-FIT_METHODS = ("map",)
+FIT_METHODS = ("map", "nuts", "emcee")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,7 +39,13 @@ class FitOptions:
         catalogue path of starting guesses (columns x_pix/y_pix of the first
         observation, or ra_deg/dec_deg, or theta1_arcsec/theta2_arcsec; optional
         re_arcsec).
-    max_clumps: most clumps "auto" may add.  method: "map" (MAP + Fisher errors).
+    max_clumps: most clumps "auto" may add.
+    method: "map" (the optimum, errors from the Fisher matrix), or "nuts" / "emcee": the
+        posterior sampled from that optimum (observations/sample.py), its median and
+        standard deviations reported; `--method` overrides it.
+    sampler_chains: NUTS chains (emcee: 2 × parameters + 2 walkers, always).
+    sampler_warmup: NUTS adaptation steps per chain, or emcee steps discarded as burn-in.
+    sampler_samples: draws kept per chain (NUTS) or per walker (emcee).
     clump_n: Sérsic index of the clumps (fixed). Round clumps are drawn without stamps
         (`model.clumps.RoundGaussianClumps`): n = 0.5 as one Gaussian (exact), n = 1 (the
         default) as 8 Gaussians ("exponential_mog", ≤ 0.011 σ of the S1063 data from the
@@ -73,6 +79,10 @@ class FitOptions:
     detection_snr: float = 3.0
     max_steps: int = 200
     diffuse_spacing_arcsec: Optional[float] = None
+    # S1063 (102 parameters): 2 × (200 + 300) NUTS steps, ~15 leapfrog steps each
+    sampler_chains: int = 2
+    sampler_warmup: int = 200
+    sampler_samples: int = 300
 
     def validate(self):
         def need(ok, key, expected):
@@ -83,7 +93,13 @@ class FitOptions:
         need(isinstance(self.max_clumps, int) and 0 <= self.max_clumps <= 200, "max_clumps",
              "an integer in [0, 200]")
         need(self.method in FIT_METHODS, "method",
-             " or ".join(f'"{m}"' for m in FIT_METHODS) + " (samplers for observations: not yet)")
+             " or ".join(f'"{m}"' for m in FIT_METHODS))
+        need(isinstance(self.sampler_chains, int) and 1 <= self.sampler_chains <= 64,
+             "sampler_chains", "an integer in [1, 64]")
+        need(isinstance(self.sampler_warmup, int) and 0 <= self.sampler_warmup <= 100000,
+             "sampler_warmup", "an integer in [0, 100000]")
+        need(isinstance(self.sampler_samples, int) and 10 <= self.sampler_samples <= 100000,
+             "sampler_samples", "an integer in [10, 100000]")
         need(_num(self.clump_n) and 0.2 <= self.clump_n <= 10, "clump_n", "a Sérsic index in [0.2, 10]")
         need(self.clump_shape in ("round", "elliptical"), "clump_shape", '"round" or "elliptical"')
         need(_num(self.clump_re_min_arcsec) and self.clump_re_min_arcsec > 0, "clump_re_min_arcsec",

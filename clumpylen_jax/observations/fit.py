@@ -70,6 +70,9 @@ class ObservedFit:
     steps: list                   # [{stage, n_steps, chi2, success, seconds}]
     timings_s: dict
     n_clumps: int
+    # per clump, True where a sampler's chains did not mix (R̂ above sample.RHAT_MAX for one
+    # of its parameters): flag bit 1, as a fit that did not converge; None after a MAP fit
+    clump_unconverged: Optional[np.ndarray] = None
 
 
 def bands_for(observations, frame) -> list:

@@ -1,7 +1,8 @@
 """`fit_observation_scene`: the whole path of `clumpylen fit` for a scene with [[observations]].
 
 read and check every band (before any compilation) → fit frame → clump starts
-("auto": inference.auto; a catalogue; "none") → joint fit → answers → files.
+("auto": inference.auto; a catalogue; "none") → joint fit → [posterior sampled from its
+optimum: `[fit] method` "nuts" / "emcee", sample.py] → answers → files.
 """
 
 from __future__ import annotations
@@ -146,6 +147,17 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
     fit = fit_observations(obs, frame, opts, starts)
     fit.timings_s["read"] = round(read_s, 3)
     fit.timings_s["clump_starts" if opts.clumps != "auto" else "auto"] = round(starts_s, 3)
+    sampled = None
+    if opts.method != "map":
+        if progress:
+            progress(f"joint fit: {fit.n_clumps} clumps, {len(fit.param.labels)} parameters; "
+                     f"sampling the posterior ({opts.method}, {opts.sampler_warmup} warmup + "
+                     f"{opts.sampler_samples} draws)")
+        from .sample import sample_observed_fit
+        sampled = sample_observed_fit(fit, opts.method, opts, scene.seed)
+        fit = sampled.fit
+        if progress:
+            progress(sampled.describe())
     fit.timings_s["command_total"] = round(time.perf_counter() - t0, 3)
     from ..inference.auto import host_alternatives
     table = clump_rows(fit, obs, frame, scene, lens, host_alternatives(counting or []))
@@ -155,6 +167,12 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         from .outputs import write_all
         # the counting's steps (clump added, removed, host moves; Δ ln L, criterion,
         # χ²/dof), so that a user sees why a clump is in or out (issue 18)
-        extra = None if counting is None else {"counting": counting}
+        extra = {} if counting is None else {"counting": counting}
+        table.meta["errors"] = "fisher" if sampled is None else f"posterior ({opts.method})"
+        if sampled is not None:
+            extra["sampler"] = sampled.summary
         files = write_all(out_dir, scene, obs, frame, fit, table, host, extra=extra, lens=lens)
+        if sampled is not None:
+            from ..inference.run import write_chains
+            files.append(write_chains(Path(out_dir) / "chains.npz", sampled.chains))
     return fit, table, host, files
