@@ -89,8 +89,30 @@ def compare(fit_dir: Path) -> list:
                          "re_arcsec_err": float(t["re_arcsec_err"][i]),
                          "mag_int_F200W": float(t["mag_int_F200W"][i]),
                          "mag_int_F200W_err": float(t["mag_int_F200W_err"][i]),
-                         "flag": int(t["flag"][i])})
+                         "flag": int(t["flag"][i]),
+                         "source_id": int(t["source_id"][i]) if "source_id" in t.colnames
+                         else None})
     return rows
+
+
+def group_lines(summary, rows) -> list:
+    """The fit's images of one source clump (summary.json `multiple_images`), each member with
+    the true clump its β matches: a group is right when all its members match one."""
+    truth_of = {}
+    for r in rows:
+        truth_of.setdefault(r["fit_id"], set()).add(r["true_id"])
+    groups = summary.get("multiple_images", [])
+    lines = ["", "Images grouped by the fit (`source_id`; β within `image_match_arcsec` and "
+             "opposite parity or ≥ `image_separation_min_arcsec` apart):", ""]
+    if not groups:
+        return lines + ["none"]
+    lines += ["| source_id | fitted clumps | the true clump of each | colour χ² / dof |",
+              "|---|---|---|---|"]
+    for g in groups:
+        true = [sorted(truth_of.get(m, [])) for m in g["members"]]
+        lines.append(f"| {g['source_id']} | {g['members']} | {true} | "
+                     f"{g['colour_chi2']:.2f} / {g['colour_dof']} |")
+    return lines
 
 
 def main():
@@ -106,7 +128,8 @@ def main():
     rows = compare(args.fit_dir)
     payload = {"machine": machine(), "fit_dir": str(args.fit_dir), "wall_s": wall,
                "n_clumps": summary["n_clumps"], "chi2_per_dof": summary["chi2_per_dof"],
-               "lens": summary["lens"], "matches": rows}
+               "lens": summary["lens"], "matches": rows,
+               "multiple_images": summary.get("multiple_images", [])}
     write_json("observed_lens", payload)
     lines = ["# `clumpylen fit` through deflection maps with their own WCS (fixture SIS)", "",
              f"{payload['machine']['date']}; fit wall "
@@ -115,7 +138,7 @@ def main():
              f"True clumps (source plane) and the fitted clumps whose β lies within "
              f"{MATCH_ARCSEC}\" (one per image):", "",
              "| true | β true | R_e true | mag true | fit | pixel | β fit | |μ| | R_e fit | "
-             "mag_int fit | flag |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "mag_int fit | flag | source_id |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
             f"| {r['true_id']} | {r['true_beta'][0]:.3f}, {r['true_beta'][1]:.3f} | "
@@ -123,7 +146,9 @@ def main():
             f"{r['x_pix']:.0f}, {r['y_pix']:.0f} | {r['beta'][0]:.3f}±{r['beta_err'][0]:.3f}, "
             f"{r['beta'][1]:.3f}±{r['beta_err'][1]:.3f} | {r['magnification']:.2f} | "
             f"{r['re_arcsec']:.4f}±{r['re_arcsec_err']:.4f} | "
-            f"{r['mag_int_F200W']:.2f}±{r['mag_int_F200W_err']:.2f} | {r['flag']} |")
+            f"{r['mag_int_F200W']:.2f}±{r['mag_int_F200W_err']:.2f} | {r['flag']} | "
+            f"{r['source_id']} |")
+    lines += group_lines(summary, rows)
     write_text("observed_lens.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

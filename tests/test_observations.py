@@ -739,8 +739,14 @@ def test_fit_method_nuts_samples_the_observed_fit_from_its_optimum(tmp_path):
     for i in range(2):
         k = labels.index(f"clumps.flux[{i},0]")
         flux, err = np.median(x[:, k]), np.std(x[:, k], ddof=1)
+        if t["uplim_F150W"][i]:    # flux/σ < detection_snr (3): the upper limit, no error
+            assert flux < 3 * err and np.isnan(t["mag_F150W_err"][i])
+            mag = zps[0] - 2.5 * np.log10(max(flux, 0.0) + 3 * err)
+            assert abs(t["mag_F150W"][i] - mag) < 1e-9
+            continue
         mag, mag_err = zps[0] - 2.5 * np.log10(flux), 2.5 / np.log(10) * err / flux
         assert abs(t["mag_F150W"][i] - mag) < 1e-9 and abs(t["mag_F150W_err"][i] - mag_err) < 1e-9
+    for i in range(2):
         k = labels.index(f"clumps.re_arcsec[{i}]")
         assert abs(t["re_arcsec"][i] - np.median(x[:, k])) < 1e-12
     assert all(0.8 < v < 1.25 for v in summary["chi2_per_dof"].values())
@@ -783,3 +789,45 @@ def test_fit_method_emcee_from_the_scene_writes_walkers_chains(tmp_path):
         assert c["samples_x"].shape == (2 * n + 2, 30, n)
         k = list(c["labels"]).index("clumps.re_arcsec[1]")
         assert abs(t["re_arcsec"][1] - np.median(c["samples_x"][..., k])) < 1e-12
+
+
+def test_images_of_one_source_behind_an_sis_share_a_source_id(tmp_path):
+    """Behind an analytic SIS (θ_E 0.9") the two images of β = (0.15, 0.05)" (θ± = (|β| ± θ_E)
+    β/|β|, opposite parity) get one source_id; a neighbour 0.15" from the outer image, whose
+    β is only 0.023" away (below the 0.1" match), stays its own: same parity and close, so
+    not another image of the clump; a clump of another source stays alone. The colours' χ²
+    of a group is that of the members about their weighted mean."""
+    from astropy.table import Table
+
+    from clumpylen_jax.observations.config import load_observation_scene
+    from clumpylen_jax.observations.lens import place_lens, source_plane
+    from clumpylen_jax.observations.multiple_images import group_images, image_groups
+    from clumpylen_jax.observations.run import read_scene_data
+    scene = load_observation_scene(_lens_scene(tmp_path, _good(tmp_path, extra={"PIXSCALE": 0.1}), {
+        "z_lens": 0.4, "components": [{"kind": "sis", "theta_e_arcsec": 0.9}],
+        "cutout_center_arcsec": [0.0, 0.0]}))
+    obs, frame = read_scene_data(scene)
+    lens = place_lens(scene, frame)
+    b = np.array([0.15, 0.05])
+    u = b / np.hypot(*b)
+    b2 = np.array([-0.3, 0.2])
+    theta = np.array([(np.hypot(*b) + 0.9) * u, (np.hypot(*b) - 0.9) * u,
+                      (np.hypot(*b) + 0.9) * u + 0.15 * np.array([-u[1], u[0]]),
+                      (np.hypot(*b2) + 0.9) * b2 / np.hypot(*b2)])
+    sp = source_plane(lens, theta)
+    np.testing.assert_allclose(sp.beta[:2], [b, b], atol=1e-12)
+    assert sp.mu[0] > 0 > sp.mu[1] and 0.01 < np.hypot(*(sp.beta[2] - b)) < 0.1
+    sid = group_images(sp.beta, np.zeros((4, 2, 2)), sp.mu, theta, 0.1, 1.0)
+    assert sid[0] == sid[1] and len({sid[0], sid[2], sid[3]}) == 3, sid
+    # a looser separation rule links the same-parity neighbour too: the rule is what keeps it out
+    assert len(set(group_images(sp.beta, np.zeros((4, 2, 2)), sp.mu, theta, 0.1, 0.1))) == 2
+    t = Table({"id": np.arange(4), "source_id": sid, "beta1_arcsec": sp.beta[:, 0],
+               "beta2_arcsec": sp.beta[:, 1], "mag_A": [25.5, 26.7, 27.0, 26.0],
+               "mag_A_err": [0.06, 0.08, 0.1, 0.1], "mag_B": [25.0, 26.0, 26.5, 25.0],
+               "mag_B_err": [0.08, 0.06, 0.1, 0.1]})
+    (g,) = image_groups(t, ["A", "B"])
+    assert g["members"] == [0, 1] and g["colour_dof"] == 1
+    np.testing.assert_allclose(g["colours"]["A-B"], [0.5, 0.7])
+    # two colours 0.2 apart, each σ = 0.1: χ² = 0.2² / (0.1² + 0.1²) = 2
+    np.testing.assert_allclose(g["colour_chi2"], 2.0, rtol=1e-12)
+    np.testing.assert_allclose(g["beta_arcsec"], b, atol=1e-12)

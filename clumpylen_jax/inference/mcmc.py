@@ -233,3 +233,23 @@ def run_nuts(scene_model, data: ImageData, param: Parametrization, u0, key, *, n
     return ChainResult(su, sx, np.asarray(lp), float(np.mean(acc)),
                        np.full(u0.size, np.nan), effective_sample_size(sx), split_rhat(sx),
                        int(np.sum(div)), param.labels, "nuts")
+
+
+START_BALL = 0.1   # chains start within this fraction of the optimum's whitened widths
+
+
+def sample_from_optimum(method: str, scene_model, data: ImageData, param: Parametrization, u0,
+                        cov_x, *, seed: int = 0, **options) -> ChainResult:
+    """emcee or NUTS ("emcee" / "nuts") started at an optimum u0 whose Fisher or Laplace
+    covariance of the physical parameters is cov_x: NUTS in coordinates whitened by it
+    (`whitening_scale`), emcee's walkers in a ball of START_BALL × its widths. options:
+    `run_emcee` / `run_nuts` keywords (given ones win). The NUTS key is fold_in(key(seed), 1)."""
+    require(method in ("emcee", "nuts"), "method", method, '"emcee" or "nuts"')
+    scale = whitening_scale(param, u0, cov_x)
+    if method == "emcee":
+        options.setdefault("init_scale", START_BALL * np.sqrt(np.sum(scale ** 2, axis=1)))
+        return run_emcee(scene_model, data, param, u0, seed=seed, **options)
+    options.setdefault("scale", scale)
+    options.setdefault("init_scale", START_BALL)
+    return run_nuts(scene_model, data, param, u0, jax.random.fold_in(jax.random.key(seed), 1),
+                    **options)

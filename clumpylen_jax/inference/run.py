@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import require
 from .catalog import errors_state, fit_table
 from .likelihood import make_data, predicted_images
-from .mcmc import ChainResult, run_emcee, run_nuts
+from .mcmc import ChainResult, sample_from_optimum
 from .optimize import MapResult, fit_map, fit_map_multistart
 from .params import FitState, default_free, make_state, parametrize
 from .uncertainty import Uncertainty, fisher_uncertainty
@@ -117,8 +117,8 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
     chains = None
     state, err = res.state, unc.err
     if method != "map":
-        chains, state, err, unc = _sample_posterior(method, scene_model, data, param, res.u, key,
-                                                    seed, mcmc)
+        chains, state, err, unc = _sample_posterior(method, scene_model, data, param, res.u,
+                                                    unc.cov, seed, mcmc)
     table = fit_table(state, errors_state(param, err), band_names=scene_model.band_names,
                       zeropoints_ab=zeropoints_ab)
     table.meta.update({"method": method, "likelihood": likelihood,
@@ -142,14 +142,12 @@ def _free_with_background(free, source_start, background):
     return free
 
 
-def _sample_posterior(method, scene_model, data, param, u_start, key, seed, mcmc):
-    """Run emcee or NUTS from the MAP point u_start; returns (chains, the state at the
+def _sample_posterior(method, scene_model, data, param, u_start, cov_x, seed, mcmc):
+    """Run emcee or NUTS from the MAP point u_start (Fisher covariance cov_x: the NUTS metric
+    and the walkers' ball, `mcmc.sample_from_optimum`); returns (chains, the state at the
     posterior median, standard deviations, the sample covariance as an Uncertainty)."""
-    opts = dict(mcmc or {})
-    if method == "emcee":
-        chains = run_emcee(scene_model, data, param, u_start, seed=seed, **opts)
-    else:
-        chains = run_nuts(scene_model, data, param, u_start, jax.random.fold_in(key, 1), **opts)
+    chains = sample_from_optimum(method, scene_model, data, param, u_start, cov_x, seed=seed,
+                                 **dict(mcmc or {}))
     flat = chains.flat_x()
     med = np.median(flat, axis=0)
     state = param.state_from_physical(jnp.asarray(med))

@@ -13,7 +13,8 @@ propagated linearly):
 - with a lens (`[lens.local]`, or a lens model placed on the cutout: `observations.lens`):
   `beta1_arcsec`, `beta2_arcsec` (β = A θ; for a model β = θ_L − α(θ_L) from the lens centre),
   `magnification` |μ| at each clump, intrinsic `re_arcsec`/`q_src` (the image ellipse mapped
-  through the clump's A) and `mag_int_<F>` = mag + 2.5 log10 |μ|;
+  through the clump's A), `source_id` and `n_images` (clumps the lens maps to one β:
+  images of one source clump, multiple_images.py) and `mag_int_<F>` = mag + 2.5 log10 |μ|;
 - with ≥ 2 bands and z_source: `mass_msun`, `age_myr` from the SPS model
   (`photometry.band_fluxes_ujy`): the posterior on a grid of log age × log mass,
   flat priors in both, Gaussian flux likelihood (negative fluxes and upper limits
@@ -112,6 +113,11 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
         sp = source_plane(lens, theta)
         mu = np.abs(sp.mu)
         re, re_err = _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta)
+        from .multiple_images import group_images
+        sid = group_images(sp.beta, [A @ c @ A.T for A, c in zip(sp.A, th_cov)], sp.mu, theta,
+                           opts.image_match_arcsec, opts.image_separation_min_arcsec)
+        t["source_id"] = sid
+        t["n_images"] = np.bincount(sid)[sid]
     _size_columns(t, re, re_err, scene)
     if opts.clump_shape == "elliptical":
         t["q"] = q

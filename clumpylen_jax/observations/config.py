@@ -43,6 +43,10 @@ class FitOptions:
     method: "map" (the optimum, errors from the Fisher matrix), or "nuts" / "emcee": the
         posterior sampled from that optimum (observations/sample.py), its median and
         standard deviations reported; `--method` overrides it.
+    image_match_arcsec, image_separation_min_arcsec: with a lens model, clumps whose β agree
+        within image_match_arcsec (⊕ 3σ of the fitted β) and that have opposite parity or lie
+        at least image_separation_min_arcsec apart are images of one source clump
+        (`source_id`; observations/multiple_images.py).
     sampler_chains: NUTS chains (emcee: 2 × parameters + 2 walkers, always).
     sampler_warmup: NUTS adaptation steps per chain, or emcee steps discarded as burn-in.
     sampler_samples: draws kept per chain (NUTS) or per walker (emcee).
@@ -80,6 +84,11 @@ class FitOptions:
     max_steps: int = 200
     diffuse_spacing_arcsec: Optional[float] = None
     # S1063 (102 parameters): 2 × (200 + 300) NUTS steps, ~15 leapfrog steps each
+    # images of one source clump (multiple_images.py): β within this (the lens model's
+    # precision in the source plane, plus 3σ of the fitted β), and opposite parity or at
+    # least image_separation_min_arcsec apart
+    image_match_arcsec: float = 0.1
+    image_separation_min_arcsec: float = 1.0
     sampler_chains: int = 2
     sampler_warmup: int = 200
     sampler_samples: int = 300
@@ -94,6 +103,10 @@ class FitOptions:
              "an integer in [0, 200]")
         need(self.method in FIT_METHODS, "method",
              " or ".join(f'"{m}"' for m in FIT_METHODS))
+        need(_num(self.image_match_arcsec) and self.image_match_arcsec >= 0,
+             "image_match_arcsec", "a source-plane distance ≥ 0 arcsec")
+        need(_num(self.image_separation_min_arcsec) and self.image_separation_min_arcsec > 0,
+             "image_separation_min_arcsec", "an image-plane distance > 0 arcsec")
         need(isinstance(self.sampler_chains, int) and 1 <= self.sampler_chains <= 64,
              "sampler_chains", "an integer in [1, 64]")
         need(isinstance(self.sampler_warmup, int) and 0 <= self.sampler_warmup <= 100000,

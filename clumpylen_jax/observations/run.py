@@ -171,6 +171,9 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
         table.meta["errors"] = "fisher" if sampled is None else f"posterior ({opts.method})"
         if sampled is not None:
             extra["sampler"] = sampled.summary
+        if "source_id" in table.colnames:   # images of one source clump, their colours
+            from .multiple_images import image_groups
+            extra["multiple_images"] = image_groups(table, [o.name for o in obs])
         files = write_all(out_dir, scene, obs, frame, fit, table, host, extra=extra, lens=lens)
         if sampled is not None:
             from ..inference.run import write_chains

@@ -16,7 +16,8 @@ so the errors are conditional on it, as the Fisher errors are marginalised over 
 - NUTS (blackjax) moves in coordinates whitened by the optimum's covariance
   (`mcmc.whitening_scale`, capped in u where a parameter sits at a bound); without that the
   S1063 fit (102 parameters) diverged at every step, with it ~15 leapfrog steps a draw.
-- emcee's walkers (2 × parameters + 2) start in a ball of a tenth of those widths.
+- emcee's walkers (2 × parameters + 2) start in a ball of a tenth of those widths
+  (`mcmc.sample_from_optimum`, shared with the fits of mock images).
 
 Reported: the posterior median of every parameter (the state drawn in `residuals_*.fits`)
 and the samples' covariance, which the answers propagate as they do the Fisher one
@@ -30,17 +31,15 @@ import dataclasses
 import re
 import time
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..inference.mcmc import ChainResult, run_emcee, run_nuts, whitening_scale
+from ..inference.mcmc import ChainResult, sample_from_optimum
 from ..inference.params import FreeLeaf, Parametrization, _getter
 from ..inference.transforms import Transform
 from ..inference.uncertainty import Uncertainty
 from .fit import ObservedFit, _chi2
 
-EMCEE_BALL = 0.1   # emcee's starting ball: this fraction of the whitened widths
 RHAT_MAX = 1.1     # split R̂ above this for one of a clump's parameters: flag 1 (not converged)
 
 
@@ -72,16 +71,14 @@ def sample_observed_fit(fit: ObservedFit, method: str, options, seed: int) -> Sa
     t0, c0 = time.perf_counter(), time.process_time()
     param = _angles_bounded(fit.param, fit.state)
     u0 = param.unconstrained_vector(param.physical_of_state(fit.state))
-    scale = whitening_scale(param, u0, fit.uncertainty.cov)
     if method == "nuts":
-        chains = run_nuts(fit.model, fit.data, param, u0, jax.random.key(seed),
-                          n_chains=options.sampler_chains, n_warmup=options.sampler_warmup,
-                          n_samples=options.sampler_samples, init_scale=0.1, scale=scale)
+        sizes = dict(n_chains=options.sampler_chains, n_warmup=options.sampler_warmup,
+                     n_samples=options.sampler_samples)
     else:
-        chains = run_emcee(fit.model, fit.data, param, u0, n_walkers=2 * u0.size + 2,
-                           n_steps=options.sampler_warmup + options.sampler_samples,
-                           burn=options.sampler_warmup,
-                           init_scale=EMCEE_BALL * np.sqrt(np.sum(scale ** 2, axis=1)), seed=seed)
+        sizes = dict(n_walkers=2 * u0.size + 2, burn=options.sampler_warmup,
+                     n_steps=options.sampler_warmup + options.sampler_samples)
+    chains = sample_from_optimum(method, fit.model, fit.data, param, u0, fit.uncertainty.cov,
+                                 seed=seed, **sizes)
     flat = chains.flat_x()
     med = np.median(flat, axis=0)
     state = param.state_from_physical(jnp.asarray(med))
