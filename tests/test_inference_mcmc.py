@@ -11,7 +11,7 @@ from clumpylen_jax.inference.mock import toy_bands, toy_model
 from clumpylen_jax.source import Clumps, Source
 
 
-def test_emcee_and_nuts_agree():
+def _toy_problem():
     src = Source(clumps=Clumps(jnp.array([[-0.2, 0.1], [0.2, -0.1]]), jnp.array([[0.6], [0.3]]),
                                jnp.array([0.08, 0.06]), jnp.full(2, 0.5), jnp.array([0.8, 0.9]),
                                jnp.array([0.3, 1.0])))
@@ -19,6 +19,11 @@ def test_emcee_and_nuts_agree():
     noisy, _, var = eqx.filter_jit(model.observe)(src, jax.random.key(1))
     data = make_data(model, noisy, var)
     param = parametrize(make_state(src, 1), {"clumps.flux": True, "clumps.re_arcsec": [0]})
+    return model, data, param
+
+
+def test_emcee_and_nuts_agree():
+    model, data, param = _toy_problem()
     # the samplers start where an astronomer would: at the MAP reached from a start away
     # from the truth (the truth only makes the mock)
     u0 = fit_map(model, data, param, param.initial() + jnp.array([0.3, -0.3, 0.2])).u
@@ -35,17 +40,6 @@ def test_emcee_and_nuts_agree():
     assert np.all(np.isfinite(em.autocorr_time)) and np.all(em.autocorr_time > 1)
     assert np.all(nu.rhat < 1.05) and np.all(nu.ess > 100) and nu.n_divergent == 0
     assert em.samples_x.shape == (16, 450, 3) and nu.samples_x.shape == (2, 300, 3)
-
-
-def _toy_problem():
-    src = Source(clumps=Clumps(jnp.array([[-0.2, 0.1], [0.2, -0.1]]), jnp.array([[0.6], [0.3]]),
-                               jnp.array([0.08, 0.06]), jnp.full(2, 0.5), jnp.array([0.8, 0.9]),
-                               jnp.array([0.3, 1.0])))
-    model = toy_model(src, toy_bands(1, pixel_arcsec=0.04), npix=21)
-    noisy, _, var = eqx.filter_jit(model.observe)(src, jax.random.key(1))
-    data = make_data(model, noisy, var)
-    param = parametrize(make_state(src, 1), {"clumps.flux": True, "clumps.re_arcsec": [0]})
-    return model, data, param
 
 
 def test_whitening_scale_is_the_covariance_in_u_and_caps_parameters_at_a_bound():
