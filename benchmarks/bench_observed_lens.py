@@ -13,7 +13,8 @@ landed on the map at the right sky position, through the rotated WCS.
     .venv/bin/python benchmarks/bench_observed_lens.py [--fit-dir DIR]
 
 --fit-dir: read an existing output folder of the same command instead of fitting (the fit
-took 391 s on 2 shared cores on 2026-11-27, ~30 min a day earlier). Writes benchmarks/results/observed_lens.{json,md}.
+took 391 s on 2 shared cores on 2026-11-27, ~30 min a day earlier). Writes
+benchmarks/results/observed_lens.{json,md}.
 """
 
 from __future__ import annotations
