@@ -82,6 +82,11 @@ def test_whitened_nuts_matches_fisher_on_a_small_posterior():
     x0 = param.physical_vector(u0)
     fe = fisher_uncertainty(model, param, x0, data)
     L = whitening_scale(param, u0, fe.cov)
+    # the metric check: ~1 for the right metric; ≳ 100 for one 10× too wide (Δln p ∝ scale²
+    # for a Gaussian; more where 10σ reaches the transforms' curvature)
+    from clumpylen_jax.inference.mcmc import laplace_mismatch
+    ok, wide = (laplace_mismatch(model, data, param, u0, k * L, seed=1) for k in (1.0, 10.0))
+    assert 0.5 < ok < 2.0 and wide > 50, (ok, wide)
     run = lambda: run_nuts(model, data, param, u0, jax.random.key(5), n_chains=2,  # noqa: E731
                            n_warmup=150, n_samples=300, init_scale=0.1, scale=L)
     nu = run()

@@ -109,6 +109,20 @@ def whitening_scale(param: Parametrization, u, cov_x, cap: float = U_SIGMA_CAP) 
     return sd[:, None] * np.linalg.cholesky(corr)
 
 
+def laplace_mismatch(scene_model, data: ImageData, param: Parametrization, u0, scale,
+                     seed: int = 0) -> float:
+    """−Δln p / (½|z|²) between u0 and u0 + L z for one z ~ N(0, I) (L = `scale`): ~1 where
+    the posterior in whitened coordinates is the unit Gaussian the metric assumes (S1063:
+    1.3), ≫ 1 where the optimum's covariance misdescribes it (RXJ1131 with its diffuse
+    light: ~400), and NUTS then takes tiny steps. NaN where a density is not finite."""
+    u0 = np.asarray(u0, float)
+    z = np.random.default_rng(seed).standard_normal(u0.size)
+    us = jnp.asarray(np.stack([u0, u0 + np.asarray(scale, float) @ z]))
+    lp = np.asarray(_batched_logdensity(scene_model, data, param, None, us))
+    ratio = -(lp[1] - lp[0]) / (0.5 * float(z @ z))
+    return float(ratio) if np.isfinite(ratio) else float("nan")
+
+
 def run_emcee(scene_model, data: ImageData, param: Parametrization, u0, *, n_walkers=None,
               n_steps=1000, burn=None, init_scale=1e-3, seed=0,
               log_prior: Optional[Callable] = None) -> ChainResult:

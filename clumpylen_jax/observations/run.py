@@ -154,7 +154,7 @@ def fit_observation_scene(scene, out_dir=None, *, progress=None):
                      f"sampling the posterior ({opts.method}, {opts.sampler_warmup} warmup + "
                      f"{opts.sampler_samples} draws)")
         from .sample import sample_observed_fit
-        sampled = sample_observed_fit(fit, opts.method, opts, scene.seed)
+        sampled = sample_observed_fit(fit, opts.method, opts, scene.seed, progress)
         fit = sampled.fit
         if progress:
             progress(sampled.describe())
