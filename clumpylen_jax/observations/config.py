@@ -83,12 +83,12 @@ class FitOptions:
     detection_snr: float = 3.0
     max_steps: int = 200
     diffuse_spacing_arcsec: Optional[float] = None
-    # S1063 (102 parameters): 2 × (200 + 300) NUTS steps, ~15 leapfrog steps each
     # images of one source clump (multiple_images.py): β within this (the lens model's
     # precision in the source plane, plus 3σ of the fitted β), and opposite parity or at
     # least image_separation_min_arcsec apart
     image_match_arcsec: float = 0.1
     image_separation_min_arcsec: float = 1.0
+    # S1063 (102 parameters): 2 × (200 + 300) NUTS steps, ~15 leapfrog steps each, 231–259 s
     sampler_chains: int = 2
     sampler_warmup: int = 200
     sampler_samples: int = 300
