@@ -25,7 +25,8 @@ propagated linearly):
   the R_e hit a prior bound; 4 the clump sits within a pixel of the field's edge; 16 the
   size is unresolved (σ(R_e) > R_e: read R_e as an upper limit); 64 the counting found the
   host's light shared otherwise nearly as well (`clumps = "auto"`: a host move rejected for
-  its extra clump only) with this clump's flux > 2σ away or gone: its magnitude holds a systematic error its σ does not (`inference.auto.FLAGS`);
+  its extra clump only) with this clump's flux > 2σ away or gone: its magnitude holds a
+  systematic error its σ does not (`inference.auto.FLAGS`);
 - where the counting kept such alternatives: `mag_alt_<F>`, the clump's observed AB mag in
   the alternative that moves it most (the range between `mag_<F>` and it is the systematic
   flag 64 warns of); NaN for a clump no alternative moves, and for one the alternative
