@@ -544,7 +544,7 @@ def test_analytic_lens_placed_by_an_offset_on_a_bare_cutout_is_exact(tmp_path):
     np.testing.assert_allclose(sp.beta, beta, atol=1e-12)
     np.testing.assert_allclose(sp.A, A, atol=1e-12)
     t = Table()
-    re, _ = _source_plane_columns(t, sp, [np.eye(2) * 1e-6] * 2, np.array([0.1, 0.1]),
+    re, _, _ = _source_plane_columns(t, sp, [np.eye(2) * 1e-6] * 2, np.array([0.1, 0.1]),
                                   np.array([0.01, 0.01]), np.ones(2), np.zeros(2))
     # a round image of R_e r through A is an ellipse whose major axis is r × A's largest
     # singular value (the radial direction, where the SIS does not magnify)

@@ -253,15 +253,15 @@ START_BALL = 0.1   # chains start within this fraction of the optimum's whitened
 
 
 def sample_from_optimum(method: str, scene_model, data: ImageData, param: Parametrization, u0,
-                        cov_x, *, seed: int = 0, **options) -> ChainResult:
-    """emcee or NUTS ("emcee" / "nuts") started at an optimum u0 whose Fisher or Laplace
-    covariance of the physical parameters is cov_x: NUTS in coordinates whitened by it
-    (`whitening_scale`), emcee's walkers in a ball of START_BALL × its widths. options:
-    `run_emcee` / `run_nuts` keywords (given ones win). The NUTS key is fold_in(key(seed), 1)."""
+                        scale, *, seed: int = 0, **options) -> ChainResult:
+    """emcee or NUTS ("emcee" / "nuts") started at an optimum u0, with `scale` its whitening
+    (`whitening_scale` of its Fisher or Laplace covariance): NUTS in coordinates whitened by
+    it, emcee's walkers in a ball of START_BALL × its widths. options: `run_emcee` /
+    `run_nuts` keywords (given ones win). The NUTS key is fold_in(key(seed), 1)."""
     require(method in ("emcee", "nuts"), "method", method, '"emcee" or "nuts"')
-    scale = whitening_scale(param, u0, cov_x)
     if method == "emcee":
-        options.setdefault("init_scale", START_BALL * np.sqrt(np.sum(scale ** 2, axis=1)))
+        options.setdefault("init_scale", START_BALL * np.sqrt(np.sum(np.asarray(scale) ** 2,
+                                                                     axis=1)))
         return run_emcee(scene_model, data, param, u0, seed=seed, **options)
     options.setdefault("scale", scale)
     options.setdefault("init_scale", START_BALL)

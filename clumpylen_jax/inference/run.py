@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import require
 from .catalog import errors_state, fit_table
 from .likelihood import make_data, predicted_images
-from .mcmc import ChainResult, sample_from_optimum
+from .mcmc import ChainResult, sample_from_optimum, whitening_scale
 from .optimize import MapResult, fit_map, fit_map_multistart
 from .params import FitState, default_free, make_state, parametrize
 from .uncertainty import Uncertainty, fisher_uncertainty
@@ -146,7 +146,8 @@ def _sample_posterior(method, scene_model, data, param, u_start, cov_x, seed, mc
     """Run emcee or NUTS from the MAP point u_start (Fisher covariance cov_x: the NUTS metric
     and the walkers' ball, `mcmc.sample_from_optimum`); returns (chains, the state at the
     posterior median, standard deviations, the sample covariance as an Uncertainty)."""
-    chains = sample_from_optimum(method, scene_model, data, param, u_start, cov_x, seed=seed,
+    chains = sample_from_optimum(method, scene_model, data, param, u_start,
+                                 whitening_scale(param, u_start, cov_x), seed=seed,
                                  **dict(mcmc or {}))
     flat = chains.flat_x()
     med = np.median(flat, axis=0)

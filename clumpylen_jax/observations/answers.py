@@ -113,10 +113,10 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
         from .lens import source_plane
         sp = source_plane(lens, theta)
         mu = np.abs(sp.mu)
-        re, re_err = _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta)
+        re, re_err, b_cov = _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta)
         from .multiple_images import group_images
-        sid = group_images(sp.beta, [A @ c @ A.T for A, c in zip(sp.A, th_cov)], sp.mu, theta,
-                           opts.image_match_arcsec, opts.image_separation_min_arcsec)
+        sid = group_images(sp.beta, b_cov, sp.mu, theta, opts.image_match_arcsec,
+                           opts.image_separation_min_arcsec)
         t["source_id"] = sid
         t["n_images"] = np.bincount(sid)[sid]
     _size_columns(t, re, re_err, scene)
@@ -174,7 +174,7 @@ def _position_columns(t, frame, phi, cov, idx):
 def _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta):
     """Add β [arcsec], |μ| (the lens's, not fitted), the observed R_e and the intrinsic q from
     `sp` (lens.SourcePlane at the clumps); returns the intrinsic (R_e [arcsec], its error): the
-    image ellipse mapped through each clump's A."""
+    image ellipse mapped through each clump's A; and the β covariances [N][2, 2] arcsec²."""
     n = len(re)
     beta = sp.beta
     b_cov = [A @ c @ A.T for A, c in zip(sp.A, th_cov)]
@@ -189,7 +189,7 @@ def _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta):
     src = [_ellipse_through(sp.A[i], re[i], q[i], pa_theta[i]) for i in range(n)]
     scale = np.array([s[0] / re[i] for i, s in enumerate(src)])
     t["q_src"] = [s[1] for s in src]
-    return np.array([s[0] for s in src]), re_err * scale
+    return np.array([s[0] for s in src]), re_err * scale, b_cov
 
 
 def _size_columns(t, re, re_err, scene):

@@ -90,8 +90,7 @@ def sample_observed_fit(fit: ObservedFit, method: str, options, seed: int,
         progress(f"the optimum's covariance misdescribes the posterior (Δln p {mismatch:.0f}× a "
                  "Gaussian's at 1σ): expect tiny NUTS steps, a long run and chains that do "
                  "not mix (R̂ and flag 1 will say)")
-    chains = sample_from_optimum(method, fit.model, fit.data, param, u0, fit.uncertainty.cov,
-                                 seed=seed, **({"scale": scale} if method == "nuts" else {}),
+    chains = sample_from_optimum(method, fit.model, fit.data, param, u0, scale, seed=seed,
                                  **sizes)
     flat = chains.flat_x()
     med = np.median(flat, axis=0)
