@@ -7,9 +7,8 @@ The fit is in the image plane (each image with its own parameters); this is the 
 astronomer takes after it. Two clumps are linked as images of one source clump when their
 β agree within √(match² + 9 (σ²_β,i + σ²_β,j)) (`match_arcsec`: the lens model's precision
 in the source plane; σ_β from the fit; a clump with σ_β > match_arcsec is matched to
-nothing) and they can be different images: opposite parity
-(sign of μ: the two sides of a fold critical curve) or at least `min_separation_arcsec`
-apart. The second condition keeps neighbouring clumps of one highly magnified image apart,
+nothing) and they can be different images: opposite parity (sign of μ: the two sides of a
+fold critical curve) or at least `min_separation_arcsec` apart. The second condition keeps neighbouring clumps of one highly magnified image apart,
 whose β differ by their separation / μ, which can be below any model precision. Groups
 grow from the closest matches first, and two groups join only when every pair across them
 could be two images: a neighbour of one image cannot join through the counter-image.
@@ -43,11 +42,11 @@ def group_images(beta, beta_cov, mu, theta, match_arcsec: float,
     tol = np.sqrt(match_arcsec ** 2 + 9.0 * (var[:, None] + var[None, :]))
     group = [{i} for i in range(n)]
     member_of = list(range(n))
-    # closest matches first; two groups join only when every pair across them can be two
-    # images (distinct): a neighbour of one image cannot join through the counter-image
     # a clump whose β is known worse than the match (σ_β > match_arcsec: a position the fit
     # did not measure) is matched to nothing: its 3σ would reach any clump
     known = np.sqrt(var) <= match_arcsec
+    # closest matches first; two groups join only when every pair across them can be two
+    # images (distinct): a neighbour of one image cannot join through the counter-image
     pairs = sorted(((d_beta[i, j] / max(tol[i, j], 1e-300), i, j) for i in range(n)
                     for j in range(i + 1, n)
                     if d_beta[i, j] <= tol[i, j] and distinct[i, j] and known[i] and known[j]))
