@@ -9,7 +9,12 @@ written as:
 - "jwst": NIRCam F150W (0.03″, 64²) and F444W (0.06″, 32²) i2d-like cutouts in MJy/sr
   (PIXAR_SR) with ERR, a celestial WCS rotated by a random angle, Gaussian noise;
 - "hst": ACS F606W and F814W (0.05″, 48², one WCS rotated by a random angle) in e⁻/s with
-  PHOTFLAM/PHOTPLAM, EXPTIME and a WHT (1/σ²) map, Gaussian background noise.
+  PHOTFLAM/PHOTPLAM, EXPTIME and a WHT (1/σ²) map, Gaussian background noise;
+- "jwst_turned": "jwst" with F444W's WCS turned by another 20–70° (drawn per seed): the fit
+  draws F444W on frame-aligned pixels turned onto the data's. Its truth there is drawn by
+  the fit's model on F444W's own aligned frame (positions through the WCSs, PAs turned),
+  not by the turned path under test. The same seed gives the same truth and noise values
+  as "jwst".
 Then `clumpylen fit scene.toml --out DIR` runs with `clumps = "auto"`: the clumps are found,
 seeded and counted from the images; nothing of the truth reaches the fit (the scene gives
 files, filters, z_source and the clumps' Sérsic index). Each true clump is matched to the
@@ -21,7 +26,9 @@ the pulls measure the fitter and its errors), source Poisson noise (drizzled WHT
 carry the background's only), PSF mismatch.
 
     .venv/bin/python benchmarks/bench_observation_pulls.py [--seeds 4] [--formats jwst,hst]
-        [--name observation_pulls] [--keep DIR]
+        [--psf-oversampling 1] [--name observation_pulls] [--keep DIR]
+
+--psf-oversampling sets the fit's `[fit] psf_oversampling` and the mock's drawing alike.
 
 Writes benchmarks/results/<name>.{json,md}. With --keep DIR, a mock whose fit is already in DIR
 is evaluated again without fitting (the mocks are the same for the same seed).
@@ -71,6 +78,8 @@ FORMATS = {
     "jwst": [("F150W", "JWST/NIRCam", 0.03, (64, 64)), ("F444W", "JWST/NIRCam", 0.06, (32, 32))],
     "hst": [("F606W", "HST/ACS", 0.05, (48, 48)), ("F814W", "HST/ACS", 0.05, (48, 48))],
 }
+FORMATS["jwst_turned"] = FORMATS["jwst"]
+TURN_DEG = (20.0, 70.0)    # "jwst_turned": F444W's WCS turned by this much more than F150W's
 TARGET_SNR = 25.0      # S/N of a 10^7.5 M☉, 100 Myr clump in each band (sets σ)
 HST_EXPTIME_S = 2000.0
 
@@ -119,16 +128,35 @@ def _truth(rng, bands, frame):
                 host_q=rng.uniform(0.4, 0.9), host_pa=rng.uniform(0, np.pi), f=f)
 
 
-def _mock(kind, seed, work: Path):
+def _in_own_frame(source: Source, frame, band_frame, k: int) -> tuple:
+    """(band k's own aligned fit frame, `source`'s band-k light placed in it): positions
+    through the two WCSs, position angles turned by the frames' relative angle."""
+    own = fit_frame([band_frame], ["own"])
+    move = lambda phi: own.phi_of_radec(*frame.radec(np.atleast_2d(np.asarray(phi, float))))  # noqa: E731
+    d = move([[0.0, 0.0], [1.0, 0.0]])
+    turn = math.atan2(d[1, 1] - d[0, 1], d[1, 0] - d[0, 0])
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    b, c = source.bulge, source.clumps
+    return own, Source(
+        bulge=Sersic(flux=f(np.asarray(b.flux)[k:k + 1]), re_arcsec=b.re_arcsec, n=b.n, q=b.q,
+                     pa_rad=f(float(b.pa_rad) + turn), center_arcsec=f(move(b.center_arcsec)[0])),
+        clumps=Clumps(center_arcsec=f(move(c.center_arcsec)), flux=f(np.asarray(c.flux)[:, k:k + 1]),
+                      re_arcsec=c.re_arcsec, n=c.n, q=c.q, pa_rad=f(np.asarray(c.pa_rad) + turn)))
+
+
+def _mock(kind, seed, work: Path, psf_oversampling: int = 1):
     """Write the mock's files and scene; returns (scene path, truth table, zero points)."""
     rng = np.random.default_rng(500 + seed)
     bands = FORMATS[kind]
     rot = float(rng.uniform(0, 360))
-    headers = [_header(shape, pix, rot) for _, _, pix, shape in bands]
+    turn = [0.0] * len(bands)
+    if kind == "jwst_turned":     # its own generator: the truth and noise stay "jwst"'s
+        turn[1] = float(np.random.default_rng(900 + seed).uniform(*TURN_DEG))
+    headers = [_header(shape, pix, rot + dr) for (_, _, pix, shape), dr in zip(bands, turn)]
     frames = [BandFrame(shape, pix, celestial_wcs(h)) for (_, _, pix, shape), h in zip(bands, headers)]
     frame = fit_frame(frames, [b[0] for b in bands])
     t = _truth(rng, bands, frame)
-    if kind == "jwst":
+    if kind.startswith("jwst"):
         zps = [zeropoint_mjy_sr((pix / 206264.806) ** 2) for _, _, pix, _ in bands]
     else:
         zps = [zeropoint_photflam(*ACS[name]) for name, _, _, _ in bands]
@@ -142,9 +170,14 @@ def _mock(kind, seed, work: Path):
                                  n=f(np.ones(N_CLUMPS)), q=f(np.ones(N_CLUMPS)),
                                  pa_rad=f(np.zeros(N_CLUMPS))))
     psfs = [load_psf_fits(_psf_file(work / f"psf_{name}.fits", pix)) for name, _, pix, _ in bands]
-    model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame,
-                               FitOptions(clump_n=1.0))(truth)
+    opts = FitOptions(clump_n=1.0, psf_oversampling=psf_oversampling)
+    model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
     images = [np.asarray(i) for i in model.band_images(truth)]
+    for k, dr in enumerate(turn):
+        if dr:    # not by the turned path under test: the fit's model on the band's own frame
+            own, src = _in_own_frame(truth, frame, frames[k], k)
+            images[k] = np.asarray(make_model_factory([_Ob(bands[k][0], psfs[k])], own, opts)(
+                src).band_images(src)[0])
     lines = [f'[scene]\nname = "pulls-{kind}-{seed}"\nz_source = {Z}\n']
     snr = []
     for k, ((name, inst, pix, shape), h, img) in enumerate(zip(bands, headers, images)):
@@ -155,7 +188,7 @@ def _mock(kind, seed, work: Path):
         # Gaussian-equivalent σ (R_e / 1.1774), approximate for n = 1 clumps
         s2 = PSF_SIGMA_PIX**2 + (t["re"] / 1.1774 / pix) ** 2
         snr.append(flux[:, k] / (sigma * np.sqrt(4 * math.pi * s2)))
-        if kind == "jwst":
+        if kind.startswith("jwst"):
             path = write_cutout(work / f"{name}_i2d.fits", sci, np.full(shape, sigma), header=h,
                                 bunit="MJy/sr", extra={"PIXAR_SR": (pix / 206264.806) ** 2})
         else:
@@ -165,7 +198,7 @@ def _mock(kind, seed, work: Path):
                                        "PHOTPLAM": ACS[name][1]})
         lines.append(f'[[observations]]\nfilter = "{name}"\ninstrument = "{inst}"\n'
                      f'image = "{path}"\npsf = "{work / f"psf_{name}.fits"}"\n')
-    lines.append('[fit]\nclumps = "auto"\nclump_n = 1.0\n')
+    lines.append(f'[fit]\nclumps = "auto"\nclump_n = 1.0\npsf_oversampling = {psf_oversampling}\n')
     scene = work / "scene.toml"
     scene.write_text("\n".join(lines))
     ra, dec = frame.radec(t["pos"])
@@ -236,6 +269,7 @@ def main():
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--formats", default="jwst,hst")
     ap.add_argument("--name", default="observation_pulls")
+    ap.add_argument("--psf-oversampling", type=int, default=1)
     ap.add_argument("--keep", default=None, help="work folder kept (files, scenes, fits)")
     args = ap.parse_args()
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="obs-pulls-"))
@@ -244,7 +278,7 @@ def main():
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             work = root / f"{kind}-{seed}"
             work.mkdir(parents=True, exist_ok=True)
-            scene, true, names, pix = _mock(kind, seed, work)
+            scene, true, names, pix = _mock(kind, seed, work, args.psf_oversampling)
             t0 = time.time()
             done = work / "fit" / "summary.json"
             if done.is_file():    # --keep: a finished fit is evaluated again, not refitted
@@ -290,6 +324,7 @@ def main():
     write_json(args.name, payload)
     md = [f"# `clumpylen fit` pulls on mocks in real-product formats (issue 17)\n",
           f"{machine()['date']}; {N_CLUMPS} clumps per mock, z = {Z}, clumps = \"auto\" (no truth), "
+          f"psf_oversampling = {args.psf_oversampling}, "
           f"matched within {MATCH_PIX} finest pixels; {time.time() - t_all:.0f} s wall in all.\n",
           "| format | seed | fit s | χ²/dof | found | false | recovered |", "|---|---|---|---|---|---|---|"]
     for res in results:

@@ -126,8 +126,29 @@ def test_pix2a_header_matrix_turns_pixels_into_theta(tmp_path):
     assert fit_frame([ob.frame], ["F150W"]).theta(np.array([1.0, 2.0])) == pytest.approx([1.0, 2.0])
 
 
-@pytest.mark.parametrize("case", ["mirror", "scale", "partial", "psf_is_image", "psf_nan",
-                                  "two_orientations"])
+def test_bands_of_two_pixel_matrices_are_concentric_and_turned_by_their_difference():
+    """Without a WCS, a band whose pixel matrix is RXJ1131's (turned against North-up) beside
+    a North-up band: concentric, its pixels turned by the matrices' relative angle, and θ of
+    its pixels the same through either band."""
+    from clumpylen_jax.observations.frame import BandFrame
+    from clumpylen_jax.pixels import RotatedGrid
+    north_up = ((-0.05, 0.0), (0.0, 0.05))
+    fr = fit_frame([BandFrame((16, 16), 0.05, None, north_up),
+                    BandFrame((20, 20), 0.05, None, tuple(map(tuple, RXJ_MATRIX)))], ["A", "B"])
+    g = fr.grids[1]
+    assert isinstance(g, RotatedGrid)
+    m = np.asarray(RXJ_MATRIX, float)
+    want = math.atan2(m[1, 0], -m[0, 0])       # pixel x's direction in θ (West, North)
+    assert math.remainder(g.angle_rad - want, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
+    assert g.position_of(np.array([9.5, 9.5])) == pytest.approx([0.0, 0.0], abs=1e-12)
+    # θ = (West, North) of pixel steps from the centre, the matrix taken at the band's pixel side
+    to_theta = np.diag([-1.0, 1.0]) @ m * (0.05 / math.sqrt(abs(np.linalg.det(m))))
+    xy = np.array([[0.0, 0.0], [19.0, 3.0]])
+    theta = fr.theta(fr.phi_of_pixel(xy, 1))
+    assert theta == pytest.approx((xy - 9.5) @ to_theta.T, abs=1e-9)
+
+
+@pytest.mark.parametrize("case", ["mirror", "scale", "partial", "psf_is_image", "psf_nan"])
 def test_bad_matrix_or_psf_hdu_is_one_line_and_exit_2(tmp_path, capsys, case):
     sci = np.random.default_rng(3).normal(size=(16, 16))
     extra = {"PIXSCALE": 0.05}
@@ -151,11 +172,6 @@ def test_bad_matrix_or_psf_hdu_is_one_line_and_exit_2(tmp_path, capsys, case):
         bad[3, 3] = np.nan
         obs["psf"] = write_cutout(tmp_path / "p.fits", bad, extra={"PIXSCALE": 0.05}, bunit=None)
         needles += ["psf", "p.fits"]
-    elif case == "two_orientations":
-        tables.append({"filter": "F200W", "image": write_cutout(tmp_path / "y.fits", sci, np.ones_like(sci),
-                                                          extra=extra),
-                       "pixel_matrix_arcsec": RXJ_MATRIX})
-        needles = ["observations[F200W]", "orientation", "y.fits"]
     obs["image"] = write_cutout(tmp_path / "x.fits", sci, np.ones_like(sci), extra=extra)
     text = "[scene]\nname = \"t\"\n"
     for t in tables:

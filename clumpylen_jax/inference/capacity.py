@@ -274,7 +274,7 @@ def psf_sigma_pixels(model) -> np.ndarray:
         if lay.psf_shape is None:
             out.append(np.sqrt(1 / 12))
             continue
-        sub = lay.grid.subdivided(lay.oversampling)
+        sub = lay.sub_grid
         ky, kx = lay.psf_shape
         ker = np.fft.irfft2(np.asarray(lay.psf_ft), s=fft_shape(sub.shape, (ky, kx)))[:ky, :kx]
         ker = np.clip(ker, 0.0, None)

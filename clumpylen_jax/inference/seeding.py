@@ -24,6 +24,8 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from ..pixels import Grid
+
 GAUSS_RE_PER_SIGMA = 1.1774   # R_e / σ of a Gaussian (n = 0.5) profile: √(2 ln 2)
 APERTURE_PIXELS = 2.5         # radius of the candidates' aperture (photometry and moments)
 MIN_RE_PIXELS = 0.3           # smallest R_e start of a candidate, image pixels
@@ -53,9 +55,14 @@ class Candidates:
 
 
 def reference_bands(scene_model) -> list:
-    """Indices of the bands with the finest detector pixel (they are stacked for detection)."""
-    pix = np.array([lay.grid.pixel_arcsec for lay in scene_model.layouts])
-    return [int(k) for k in np.nonzero(np.isclose(pix, pix.min(), rtol=1e-6))[0]]
+    """Indices of the bands with the finest detector pixel (they are stacked for detection):
+    the finest of those on the first band's pixel grid's axes (a band whose pixels are
+    turned against the frame, a `RotatedGrid`, is stacked only with its own kind)."""
+    grids = [lay.grid for lay in scene_model.layouts]
+    aligned = [k for k, g in enumerate(grids) if isinstance(g, Grid)] or [0]
+    pix = np.array([grids[k].pixel_arcsec for k in aligned])
+    ref = [k for k, p in zip(aligned, pix) if np.isclose(p, pix.min(), rtol=1e-6)]
+    return [k for k in ref if grids[k] == grids[ref[0]]]
 
 
 def snr_stack(residuals, variances, masks, bands):
@@ -87,7 +94,11 @@ def pixel_jacobians(scene_model, k: int, lens):
     """β1, β2 (arcsec) of band k's detector pixel centres and the lens Jacobian
     A = ∂β/∂θ there ([ny, nx, 2, 2], finite differences over the pixels; identity unlensed)."""
     g = scene_model.layouts[k].grid
-    x, y = np.meshgrid(g.x_centers(), g.y_centers())
+    x, y = g.centers()
+    # along the pixel axes: the frame's (a Grid), or turned by their angle (a RotatedGrid)
+    turn = (np.eye(2) if isinstance(g, Grid) else
+            np.array([[np.cos(g.angle_rad), -np.sin(g.angle_rad)],
+                      [np.sin(g.angle_rad), np.cos(g.angle_rad)]]))
     if lens is None:
         return x, y, np.broadcast_to(np.eye(2), x.shape + (2, 2))
     a1, a2 = lens.deflection(jnp.asarray(x), jnp.asarray(y))
@@ -95,7 +106,7 @@ def pixel_jacobians(scene_model, k: int, lens):
     p = g.pixel_arcsec
     jac = np.stack([np.stack([np.gradient(b1, p, axis=1), np.gradient(b1, p, axis=0)], -1),
                     np.stack([np.gradient(b2, p, axis=1), np.gradient(b2, p, axis=0)], -1)], -2)
-    return b1, b2, jac
+    return b1, b2, jac @ turn.T     # ∂β/∂(pixel axes) → ∂β/∂θ
 
 
 def _abs_det(A):
@@ -231,8 +242,8 @@ def merge_images(beta, det, snr, merge_pixels: float, pixel_arcsec: float):
 
 
 def _band_pixel(scene_model, k, x_arcsec, y_arcsec):
-    g = scene_model.layouts[k].grid
-    return (y_arcsec - g.y0_arcsec) / g.pixel_arcsec, (x_arcsec - g.x0_arcsec) / g.pixel_arcsec
+    x, y = scene_model.layouts[k].grid.pixel_of(np.array([x_arcsec, y_arcsec]))
+    return y, x
 
 
 def find_candidates(scene_model, residuals, variances, masks, *, lens=None, psf_sigma_pix,
@@ -253,7 +264,7 @@ def find_candidates(scene_model, residuals, variances, masks, *, lens=None, psf_
     rows = []
     for r, c, v in peaks:
         r, c = int(r), int(c)
-        x, y = g.x_centers()[c], g.y_centers()[r]
+        x, y = g.position_of(np.array([c, r], float))
         flux = np.zeros(len(residuals))
         for k in range(len(residuals)):
             rk, ck = (r, c) if k in bands else _band_pixel(scene_model, k, x, y)

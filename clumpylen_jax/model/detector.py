@@ -17,7 +17,8 @@ import numpy as np
 
 from .. import convolve, noise
 from ..errors import require
-from ..pixels import Grid, bin_blocks
+from ..pixels import (Grid, RotatedGrid, apply_overlap, apply_sparse_map, bin_blocks,
+                      rotated_overlap, rotated_samples)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,23 +54,34 @@ class Band:
         return self
 
 
-def psf_kernel(band: Band, sub_pixel_arcsec: float):
+def psf_kernel(band: Band, sub_pixel_arcsec: float, angle_rad: float = 0.0):
     """The band's PSF as an odd kernel on the sub-grid: point samples of an effective PSF
-    (it already holds the pixel integral), area averages of an optical one."""
-    from ..psf import PSF, resample_psf, sample_psf
+    (it already holds the pixel integral), area averages of an optical one. angle_rad: the
+    band's pixel axes against the sub-grid's (the PSF image lies along the band's pixels)."""
+    from ..psf import PSF, resample_psf, rotate_psf, sample_psf
     psf = PSF(array=np.asarray(band.psf, float) / np.sum(band.psf),
               pixel_arcsec=float(band.psf_pixel_arcsec), effective=bool(band.psf_effective),
               source="model")
+    if angle_rad:
+        psf = rotate_psf(psf, angle_rad)
     to_grid = sample_psf if band.psf_effective else resample_psf
     return convolve.check_kernel(to_grid(psf, sub_pixel_arcsec), f"bands[{band.name}].psf")
 
 
 class DetectorBand(eqx.Module):
     """One band's detector: pixel grid, PSF on a sub-grid `oversampling` times finer, sky
-    and exposure. Takes the rendered light on its sub-grid and observes it."""
+    and exposure. Takes the rendered light on its sub-grid and observes it.
+
+    `grid` is the detector's pixels: a `Grid`, or a `RotatedGrid` for data whose pixel
+    axes are turned against the frame. The light is rendered on the frame-aligned
+    `render_grid` (the grid itself, or one covering the turned pixels), convolved there
+    with the PSF turned into the frame, and carried onto the turned pixels by their exact
+    area overlaps (an optical PSF) or sampled at their centres (an effective PSF, which
+    holds the pixel response already)."""
 
     name: str = eqx.field(static=True)
-    grid: Grid = eqx.field(static=True)             # detector pixels
+    grid: object = eqx.field(static=True)           # detector pixels: Grid or RotatedGrid
+    render_grid: Grid = eqx.field(static=True)      # frame-aligned pixels the light is drawn on
     oversampling: int = eqx.field(static=True)      # sub-grid on which the PSF acts (1 without PSF)
     sub_pixel_arcsec: float = eqx.field(static=True)  # the band's pixel / oversampling
     exptime_s: float = eqx.field(static=True)
@@ -77,27 +89,48 @@ class DetectorBand(eqx.Module):
     psf_shape: Optional[tuple] = eqx.field(static=True)
     psf_effective: bool = eqx.field(static=True)
     psf_ft: Optional[jnp.ndarray]                   # rFFT of the kernel padded to the sub-grid
+    # sub-grid → turned pixels: (index, weight) samples or (index, weight, moment) overlaps
+    to_pixels: Optional[tuple] = None
 
     @classmethod
-    def build(cls, band: Band, grid: Grid, psf_oversampling: int, dtype):
-        """The band on `grid`; its PSF (if any) as a kernel on the sub-grid."""
+    def build(cls, band: Band, grid, psf_oversampling: int, dtype):
+        """The band on `grid` (Grid or RotatedGrid); its PSF (if any) as a kernel on the sub-grid."""
         s = psf_oversampling if band.psf is not None else 1
-        kernel = psf_kernel(band, band.pixel_arcsec / s) if band.psf is not None else None
-        return cls(band.name, grid, s, band.pixel_arcsec / s, float(band.exptime_s), float(band.sky_counts_per_s),
+        turned = isinstance(grid, RotatedGrid)
+        render = grid.covering() if turned else grid
+        angle = grid.angle_rad if turned else 0.0
+        kernel = psf_kernel(band, band.pixel_arcsec / s, angle) if band.psf is not None else None
+        to_pixels = None
+        if turned:
+            sub = render.subdivided(s)
+            if band.psf is not None and band.psf_effective:
+                index, weight = rotated_samples(sub, grid)
+                to_pixels = (jnp.asarray(index),   # a sample of flux per sub-pixel → per pixel
+                             jnp.asarray(weight * (s * s), dtype))
+            else:
+                index, weight, moment = rotated_overlap(sub, grid)
+                to_pixels = (jnp.asarray(index), jnp.asarray(weight, dtype),
+                             jnp.asarray(moment, dtype))
+        return cls(band.name, grid, render, s, band.pixel_arcsec / s, float(band.exptime_s),
+                   float(band.sky_counts_per_s),
                    None if kernel is None else kernel.shape, bool(band.psf_effective),
                    None if kernel is None else
-                   convolve.kernel_rfft(kernel, grid.subdivided(s).shape, dtype))
+                   convolve.kernel_rfft(kernel, render.subdivided(s).shape, dtype), to_pixels)
 
     @property
     def sub_grid(self) -> Grid:
-        return self.grid.subdivided(self.oversampling)
+        return self.render_grid.subdivided(self.oversampling)
 
     def observe(self, sub):
         """PSF and detector pixels: sub-grid flux image → detector counts/s (no sky)."""
         s = self.oversampling
+        conv = sub if self.psf_shape is None else \
+            convolve.fft_convolve(sub, self.psf_ft, self.psf_shape)
+        if self.to_pixels is not None:
+            apply = apply_sparse_map if len(self.to_pixels) == 2 else apply_overlap
+            return apply(conv, *self.to_pixels, self.grid.shape)
         if self.psf_shape is None:
             return bin_blocks(sub, s)
-        conv = convolve.fft_convolve(sub, self.psf_ft, self.psf_shape)
         if self.psf_effective:
             # the PSF holds the pixel response: sample it at detector centres (DESIGN.md trap)
             return conv[s // 2::s, s // 2::s] * (s * s)

@@ -4,15 +4,17 @@ The fit frame φ (arcsec) runs along the first observation's pixel axes (φ1 wit
 its columns, φ2 with its rows), origin at its central pixel. Every band is a
 `pixels.Grid` in φ — its own pixel scale and offset (NIRCam SW 0.031" and LW
 0.063" together) — so the model renders each band on the data's own pixels.
-Bands must share one orientation (a fit is single-orientation: resample a
-rotated band first); the WCS may be rotated on the sky, and positions are turned
-into θ (DESIGN.md: θ1 West, θ2 North, relative to the first observation's centre)
-and RA/Dec through it. Without a celestial WCS the cutouts are taken to share
+A band whose pixel axes are turned against the first one's (another WCS
+orientation, e.g. HST and JWST together) is a `pixels.RotatedGrid` in φ: the model
+draws it on φ-aligned pixels and carries the light onto the data's own pixels by
+their exact overlaps (model/detector.py), so no data are resampled. The WCS may be
+rotated on the sky, and positions are turned into θ (DESIGN.md: θ1 West, θ2 North,
+relative to the first observation's centre) and RA/Dec through it. Without a celestial WCS the cutouts are taken to share
 their centre, and θ comes from a pixel-to-angle matrix where the data give one
 (`pixel_matrix_arcsec`, or the header's PIX2A11..PIX2A22: a CD matrix in arcsec,
 East and North per pixel x and y, as lenstronomy's `transform_pix2angle`), else
 θ = φ (pixel x taken as West, y as North: say so when reporting). The model is
-rendered on the data's pixels either way: a rotation only turns φ into θ.
+rendered on the data's pixels either way.
 """
 
 from __future__ import annotations
@@ -23,9 +25,11 @@ from typing import Optional
 import numpy as np
 
 from ..errors import ConfigError
-from ..pixels import Grid
+from ..pixels import Grid, RotatedGrid
 
-ORIENTATION_TOL = 2e-4   # |M/s − I| allowed between bands' pixel axes (0.02 px over 100 px)
+# |M/s − R| allowed of a band's pixel axes against a rotation of the first one's (0.02 px
+# over 100 px); a band turned by less than this is taken as aligned
+ORIENTATION_TOL = 2e-4
 
 
 def celestial_wcs(header):
@@ -99,7 +103,7 @@ class BandFrame:
 class FitFrame:
     """The fit frame of a set of bands: their grids in φ and the way to θ / RA, Dec."""
 
-    grids: tuple                       # pixels.Grid per band, in φ
+    grids: tuple                       # pixels.Grid (or RotatedGrid) per band, in φ
     reference: BandFrame               # the first band
     names: tuple
 
@@ -110,16 +114,10 @@ class FitFrame:
 
     def pixel_of(self, phi, band: int = 0):
         """0-based (x, y) pixel of φ [..., 2] in band `band`."""
-        g = self.grids[band]
-        phi = np.asarray(phi, float)
-        return np.stack([(phi[..., 0] - g.x0_arcsec) / g.pixel_arcsec,
-                         (phi[..., 1] - g.y0_arcsec) / g.pixel_arcsec], -1)
+        return self.grids[band].pixel_of(phi)
 
     def phi_of_pixel(self, xy, band: int = 0):
-        g = self.grids[band]
-        xy = np.asarray(xy, float)
-        return np.stack([g.x0_arcsec + xy[..., 0] * g.pixel_arcsec,
-                         g.y0_arcsec + xy[..., 1] * g.pixel_arcsec], -1)
+        return self.grids[band].position_of(xy)
 
     def radec(self, phi):
         """(RA, Dec) degrees of φ [..., 2], or None without a WCS."""
@@ -204,27 +202,30 @@ def fit_frame(frames, names, files=None) -> FitFrame:
     grids = []
     for k, f in enumerate(frames):
         ny, nx = f.shape
-        if f.wcs is None and np.max(np.abs(theta_rotation(f) - theta_rotation(ref))) > ORIENTATION_TOL:
-            raise ConfigError(f"observations[{names[k]}] ({files[k]})",
-                              "a pixel_matrix_arcsec (PIX2A) of another orientation than "
-                              f"observations[{names[0]}]'s",
-                              "bands of one orientation (resample this band onto the first "
-                              "one's axes)")
-        if f.wcs is None or k == 0:
+        if k == 0:
             x0 = -(nx - 1) / 2.0 * f.pixel_arcsec
             y0 = -(ny - 1) / 2.0 * f.pixel_arcsec
             grids.append(Grid(x0, y0, f.pixel_arcsec, nx, ny))
             continue
-        q0, M = _affine_to_reference(f, ref)
-        s = 0.5 * (M[0, 0] + M[1, 1])
-        if not (s > 0 and np.max(np.abs(M / s - np.eye(2))) < ORIENTATION_TOL):
-            rot = np.degrees(np.arctan2(M[1, 0], M[0, 0]))
+        if f.wcs is None:   # concentric; turned by the two pixel matrices' rotations
+            M = f.pixel_arcsec / p0 * theta_rotation(ref).T @ theta_rotation(f)
+            q0 = c0 + M @ np.array([-(nx - 1) / 2.0, -(ny - 1) / 2.0])
+        else:
+            q0, M = _affine_to_reference(f, ref)
+        s = float(np.sqrt(abs(np.linalg.det(M))))
+        angle = float(np.arctan2(M[1, 0], M[0, 0]))
+        turn = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        if not (s > 0 and np.linalg.det(M) > 0 and np.max(np.abs(M / s - turn)) < ORIENTATION_TOL):
             raise ConfigError(f"observations[{names[k]}] ({files[k]})",
-                              f"pixel axes rotated by {rot:.3f} deg (or flipped) against "
+                              "pixel axes flipped or sheared against "
                               f"observations[{names[0]}]",
-                              "bands of one orientation (a fit is single-orientation: resample "
-                              "this band onto the first one's axes, e.g. with reproject)")
-        grids.append(Grid((q0[0] - c0[0]) * p0, (q0[1] - c0[1]) * p0, s * p0, nx, ny))
+                              "square pixels of the sky's parity (bands may be rotated and "
+                              "of other pixel scales, not mirrored)")
+        x0, y0 = (q0[0] - c0[0]) * p0, (q0[1] - c0[1]) * p0
+        if np.max(np.abs(M / s - np.eye(2))) < ORIENTATION_TOL:
+            grids.append(Grid(x0, y0, s * p0, nx, ny))
+        else:
+            grids.append(RotatedGrid(x0, y0, s * p0, nx, ny, angle))
     for k in range(1, len(grids)):
         if not _overlap(grids[0], grids[k]):
             raise ConfigError(f"observations[{names[k]}] ({files[k]})", "no overlap on the sky",

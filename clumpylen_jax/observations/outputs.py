@@ -191,6 +191,9 @@ def write_all(out_dir, scene, observations, frame, fit, table, host, extra=None,
                             "zeropoint_ab": ob.zeropoint_ab, "pixel_arcsec": g.pixel_arcsec,
                             "n_pixels_used": int(ob.mask.sum()),
                             "grid_origin_arcsec": [g.x0_arcsec, g.y0_arcsec],
+                            # pixel axes against the first band's (a RotatedGrid: the model
+                            # is drawn on aligned pixels and carried onto these by overlaps)
+                            "axes_turned_deg": float(np.degrees(getattr(g, "angle_rad", 0.0))),
                             "psf": None if ob.psf is None else ob.psf.source,
                             "noise_model": ob.noise_exptime_s is not None,
                             "noise": ob.noise_how,
