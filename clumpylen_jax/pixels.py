@@ -209,6 +209,42 @@ def _polygon_moments(poly, count):
     return area, centroid
 
 
+OVERLAP_BLOCK = 2048    # destination pixels clipped at once (~40 MB of work arrays)
+
+
+def _clipped_squares(src: Grid, corners, cx, cy, ii, jj):
+    """(area fraction [p, C], centroid offset [p, C, 2] in source pixels) of source pixels
+    (ii, jj) [p, C] inside the destination pixels centred at (cx, cy) [p] with `corners`
+    [4, 2] (counter-clockwise, around the centre)."""
+    ps = src.pixel_arcsec
+    p, C = ii.shape
+    x = src.x0_arcsec + ii.ravel() * ps
+    y = src.y0_arcsec + jj.ravel() * ps
+    sq = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]) * ps
+    square = np.stack([x, y], -1)[:, None, :] + sq[None]                  # [n, 4, 2]
+    centre = np.stack([np.repeat(cx, C), np.repeat(cy, C)], -1)
+    edges = [(corners[e], corners[(e + 1) % 4]) for e in range(4)]
+    normals = [np.array([b[1] - a[1], a[0] - b[0]]) for a, b in edges]   # outward: CCW corners
+    offsets = [centre @ n + a @ n for (a, _), n in zip(edges, normals)]
+    # a square wholly inside every edge is covered (fraction 1, centroid at its centre); one
+    # wholly outside an edge is not touched: only the squares that straddle an edge are clipped
+    side = np.stack([square @ n - o[:, None] for n, o in zip(normals, offsets)])   # [4, n, 4]
+    covered = np.all(side <= 0, axis=(0, 2))
+    missed = np.any(np.all(side > 0, axis=2), axis=0)
+    cut = np.nonzero(~covered & ~missed)[0]
+    frac = covered.astype(float)
+    shift = np.zeros((p * C, 2))
+    poly = np.concatenate([square[cut], np.zeros((cut.size, 4, 2))], 1)
+    count = np.full(cut.size, 4)
+    for n, o in zip(normals, offsets):
+        poly, count = _clip_polygons(poly, count, n, o[cut])
+        poly = poly[:, :8]
+    area, centroid = _polygon_moments(poly, count)
+    frac[cut] = area / ps**2
+    shift[cut] = (centroid - np.stack([x, y], -1)[cut]) / ps
+    return frac.reshape(p, C), shift.reshape(p, C, 2)
+
+
 @functools.lru_cache(maxsize=8)     # a fit builds its model several times (seconds each)
 def rotated_overlap(src: Grid, dst: RotatedGrid):
     """The map from an aligned grid's flux image onto rotated pixels, as (index [P, K]
@@ -238,22 +274,11 @@ def rotated_overlap(src: Grid, dst: RotatedGrid):
     ii = (lo_i[:, None] + di.ravel()[None, :])
     jj = (lo_j[:, None] + dj.ravel()[None, :])
     P, C = ii.shape
-    # each candidate source pixel (a square) clipped by the destination pixel's 4 edges
-    x = src.x0_arcsec + ii.ravel() * ps
-    y = src.y0_arcsec + jj.ravel() * ps
-    sq = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]) * ps
-    poly = np.concatenate([np.stack([x, y], -1)[:, None, :] + sq[None], np.zeros((P * C, 4, 2))], 1)
-    count = np.full(P * C, 4)
-    centre = np.stack([np.repeat(cx, C), np.repeat(cy, C)], -1)
-    for e in range(4):
-        a, b = corners[e], corners[(e + 1) % 4]
-        normal = np.array([b[1] - a[1], a[0] - b[0]])          # outward: the corners run CCW
-        offset = centre @ normal + a @ normal
-        poly, count = _clip_polygons(poly, count, normal, offset)
-        poly = poly[:, :8]
-    area, centroid = _polygon_moments(poly, count)
-    w = (area / ps**2).reshape(P, C)
-    offset = ((centroid - np.stack([x, y], -1)) / ps).reshape(P, C, 2)
+    w, offset = np.zeros((P, C)), np.zeros((P, C, 2))
+    for start in range(0, P, OVERLAP_BLOCK):     # blocks of pixels: bounded memory
+        rows = slice(start, min(start + OVERLAP_BLOCK, P))
+        w[rows], offset[rows] = _clipped_squares(src, corners, cx[rows], cy[rows], ii[rows],
+                                                 jj[rows])
     inside = (ii >= 0) & (ii < src.nx) & (jj >= 0) & (jj < src.ny)
     w = np.where(inside & (w > 1e-12), w, 0.0)
     K = max(int((w > 0).sum(axis=1).max(initial=0)), 1)

@@ -264,6 +264,12 @@ class Parametrization(eqx.Module):
                                ) if self.leaves else jnp.zeros(0)
 
     @eqx.filter_jit
+    def physical_and_slope(self, u):
+        """(x(u), dx/du): the slope is the Jacobian's diagonal, all of it (every transform acts
+        elementwise), from one forward-mode pass."""
+        return jax.jvp(self.physical_vector, (u,), (jnp.ones_like(u),))
+
+    @eqx.filter_jit
     def unconstrained_vector(self, x):
         """u(x): the inverse of `physical_vector`."""
         x = jnp.asarray(x)

@@ -160,5 +160,5 @@ def laplace(scene_model, data: ImageData, param: Parametrization, u, *, log_prio
     """Laplace approximation at the optimum u, mapped to physical parameters (delta method)."""
     u = jnp.asarray(u)
     cov_u = safe_inverse(_neg_log_post_hessian(scene_model, data, param, u, log_prior), rcond)
-    d = jax.jacfwd(param.physical_vector)(u)  # diagonal: the transforms act elementwise
-    return Uncertainty(param.labels, param.physical_vector(u), d @ cov_u @ d.T)
+    x, d = param.physical_and_slope(u)
+    return Uncertainty(param.labels, x, d[:, None] * cov_u * d[None, :])

@@ -34,7 +34,6 @@ import time
 from typing import Optional
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -251,7 +250,7 @@ def _covariance_from_jacobian(param, u, jac):
     diagonal: every transform is elementwise); compiled as one program (op by op, a dozen
     one-op compiles)."""
     from ..inference.uncertainty import safe_inverse
-    x, dxdu = jax.jvp(param.physical_vector, (u,), (jnp.ones_like(u),))
+    x, dxdu = param.physical_and_slope(u)
     jx = jac / jnp.where(dxdu != 0, dxdu, jnp.finfo(u.dtype).tiny)
     return x, safe_inverse(jx.T @ jx)
 
