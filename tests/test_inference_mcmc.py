@@ -124,3 +124,25 @@ def test_hessian_scale_matches_the_laplace_metric_and_bounds_a_flat_direction():
     sd3 = np.sqrt(np.diag(L3 @ L3.T))
     assert np.all(np.isfinite(L3)) and sd3[3] <= 1.0 + 1e-9, sd3
     np.testing.assert_allclose(sd3[:3], sd_h, rtol=0.15)
+
+
+def test_observed_fit_sampling_keeps_the_better_checked_metric(monkeypatch):
+    """`observations.sample.sample_observed_fit` computes the Hessian metric when the Fisher
+    metric's check is above MISMATCH_WARN (forced here: 0) and samples with whichever checks
+    better; summary.json's fields say which, and with both checks."""
+    from clumpylen_jax.observations import FitOptions, sample
+    from clumpylen_jax.observations.fit import ObservedFit
+    monkeypatch.setattr(sample, "MISMATCH_WARN", 0.0)
+    model, data, param = _toy_problem()
+    u0 = fit_map(model, data, param, param.initial() + jnp.array([0.3, -0.3, 0.2])).u
+    unc = fisher_uncertainty(model, param, param.physical_vector(u0), data)
+    fit = ObservedFit(model, data, param, param.state(u0), unc, (), True, [], {}, 2)
+    messages = []
+    out = sample.sample_observed_fit(fit, "nuts", FitOptions(sampler_chains=1, sampler_warmup=30,
+                                                             sampler_samples=30), 0,
+                                     messages.append)
+    s = out.summary
+    assert s["metric"] in ("fisher", "hessian")
+    assert s["laplace_mismatch"] == min(s["laplace_mismatch"], s["laplace_mismatch_fisher"])
+    assert any("Hessian" in m for m in messages)
+    assert out.chains.samples_x.shape == (1, 30, 3) and np.all(np.isfinite(out.chains.samples_x))

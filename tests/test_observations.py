@@ -862,6 +862,7 @@ def test_fit_method_nuts_samples_the_observed_fit_from_its_optimum(tmp_path):
     assert s["method"] == "nuts" and s["chains"] == 1 and s["draws_per_chain"] == 40
     assert s["divergent"] == 0 and 0.3 < s["acceptance"] <= 1.0
     assert 0.3 < s["laplace_mismatch"] < 10   # the whitening describes this posterior
+    assert s["metric"] == "fisher" and s["laplace_mismatch_fisher"] == s["laplace_mismatch"]
     assert t.meta["errors"] == "posterior (nuts)"
     with np.load(out / "chains.npz") as c:
         labels = list(c["labels"])

@@ -13,7 +13,9 @@ compiled once per problem structure. Given `scale` (L, e.g. the Cholesky factor 
 the Laplace covariance in u), NUTS moves in z = L⁻¹(u − u0) instead: a posterior near
 its Laplace approximation is a unit Gaussian there, so the adaptation starts from the
 right (dense) metric rather than the identity in u, where fluxes, positions and sizes
-differ in scale by orders of magnitude.
+differ in scale by orders of magnitude. L comes from the Fisher / Laplace covariance
+(`whitening_scale`) or, where that covariance is near-singular, from the Hessian of the
+sampled density itself (`hessian_scale`); `laplace_mismatch` checks either.
 """
 
 from __future__ import annotations
