@@ -63,7 +63,7 @@ def test_overlap_areas_are_exact_and_a_linear_image_is_reproduced(angle):
     assert np.max(np.abs(flat / PIX**2 / sb(cx, cy) - 1)) > 1e-6   # the moments do the work
 
 
-def test_samples_at_turned_centres_interpolate_bilinearly():
+def test_samples_at_turned_centres_are_exact_for_a_linear_image():
     g = _turned_grid(n=9)
     sub = g.covering().subdivided(3)
     x, y = sub.centers()

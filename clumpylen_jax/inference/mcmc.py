@@ -110,11 +110,19 @@ def whitening_scale(param: Parametrization, u, cov_x, cap: float = U_SIGMA_CAP) 
     return sd[:, None] * np.linalg.cholesky(corr)
 
 
+@eqx.filter_jit
+def _neg_log_density_hessian(scene_model, data, param, u):
+    # the model and data are arguments, not closed over: one program per problem structure,
+    # their arrays not baked into it as constants
+    return -jax.hessian(_logdensity(scene_model, data, param, None))(u)
+
+
 def hessian_scale(scene_model, data: ImageData, param: Parametrization, u, cov_x,
                   cap: float = U_SIGMA_CAP) -> np.ndarray:
-    """L with L Lᵀ = H⁻¹, H = −∇² ln p(u) of the density NUTS samples (the likelihood times
-    the transforms' Jacobian, flat in the physical parameters), its eigenvalues floored so
-    that no direction is wider than `cap` in u.
+    """L with L Lᵀ = H⁻¹, H = −∇² ln p(u) of the density NUTS samples (likelihood times the
+    transforms' Jacobian, flat in the physical parameters), its eigenvalues floored so
+    that no direction is wider than `cap` (in u; for identity parameters, `cap` × their
+    Fisher σ).
 
     Where the Fisher matrix is near-singular (a clump's R_e unresolved, centres degenerate
     with the diffuse light: RXJ1131, marginal σ_u up to 1.6e5), `whitening_scale` caps each
@@ -124,8 +132,7 @@ def hessian_scale(scene_model, data: ImageData, param: Parametrization, u, cov_x
     transformed ones in u, whose range a bounded or log transform spans in a few units.
     One Hessian: ~ parameters × a gradient's cost, compiled once."""
     u = jnp.asarray(u)
-    h = -np.asarray(eqx.filter_jit(jax.hessian(_logdensity(scene_model, data, param, None)))(u),
-                    float)
+    h = np.asarray(_neg_log_density_hessian(scene_model, data, param, u), float)
     _, dxdu = param.physical_and_slope(u)
     kinds = np.array([leaf.transform.kind for leaf in param.leaves for _ in leaf.index])
     sd = np.sqrt(np.abs(np.diag(np.asarray(cov_x, float)))) / np.abs(np.asarray(dxdu, float))

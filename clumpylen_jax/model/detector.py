@@ -101,7 +101,8 @@ class DetectorBand(eqx.Module):
 
     @classmethod
     def build(cls, band: Band, grid, psf_oversampling: int, dtype):
-        """The band on `grid` (Grid or RotatedGrid); its PSF (if any) as a kernel on the sub-grid."""
+        """The band on `grid` (Grid or RotatedGrid); its PSF (if any) as a kernel on the
+        sub-grid."""
         turned = isinstance(grid, RotatedGrid)
         s = (psf_oversampling if band.psf is not None else
              max(psf_oversampling, TURNED_MIN_OVERSAMPLING) if turned else 1)

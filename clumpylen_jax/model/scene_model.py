@@ -253,7 +253,8 @@ def _band_grids(bands, grids, field_arcsec, lens, center, radius):
     if grids is not None:
         require(len(grids) == len(bands) and all(
             abs(g.pixel_arcsec - b.pixel_arcsec) <= 1e-9 * b.pixel_arcsec
-            for g, b in zip(grids, bands)), "grids", grids, "one Grid per band, of its pixel")
+            for g, b in zip(grids, bands)), "grids", grids,
+            "one Grid (or RotatedGrid) per band, of its pixel")
         return list(grids)
     if field_arcsec is not None:
         return [Grid.covering(field_arcsec[0], field_arcsec[1], b.pixel_arcsec) for b in bands]
@@ -278,7 +279,9 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
         source-plane grid holding the clumps (grid mode).
     ray_cache: folder keeping traced lens-plane corners between runs (`raycache`), or None.
     grids: one `Grid` per band (detector pixels as observed data place them: each band its
-        own scale and offset), overriding field_arcsec; its pixel must be the band's.
+        own scale and offset), or a `RotatedGrid` where the band's pixel axes are turned
+        against the frame (`DetectorBand`), overriding field_arcsec; its pixel must be the
+        band's.
     """
     accuracy.validate()
     source.validate()

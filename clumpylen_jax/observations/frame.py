@@ -9,8 +9,9 @@ orientation, e.g. HST and JWST together) is a `pixels.RotatedGrid` in φ: the mo
 draws it on φ-aligned pixels and carries the light onto the data's own pixels by
 their exact overlaps (model/detector.py), so no data are resampled. The WCS may be
 rotated on the sky, and positions are turned into θ (DESIGN.md: θ1 West, θ2 North,
-relative to the first observation's centre) and RA/Dec through it. Without a celestial WCS the cutouts are taken to share
-their centre, and θ comes from a pixel-to-angle matrix where the data give one
+relative to the first observation's centre) and RA/Dec through it. Without a celestial
+WCS the cutouts are taken to share their centre (turned against each other by their
+matrices), and θ comes from a pixel-to-angle matrix where the data give one
 (`pixel_matrix_arcsec`, or the header's PIX2A11..PIX2A22: a CD matrix in arcsec,
 East and North per pixel x and y, as lenstronomy's `transform_pix2angle`), else
 θ = φ (pixel x taken as West, y as North: say so when reporting). The model is

@@ -19,7 +19,7 @@ so the errors are conditional on it, as the Fisher errors are marginalised over 
   Where that covariance misdescribes the posterior (`mcmc.laplace_mismatch`, one density
   evaluation 1σ away: 1.3 on S1063, ~400 on RXJ1131 with its diffuse light, against 1 for
   a Gaussian; above MISMATCH_WARN), the metric is the inverse Hessian of the sampled
-  density instead (`mcmc.hessian_scale`), when its check is better; the command warns
+  density instead (`mcmc.hessian_scale`), when its check is nearer 1; the command warns
   when the chosen one is still above MISMATCH_WARN. summary.json: "metric", both checks.
 - emcee's walkers (2 × parameters + 2) start in a ball of a tenth of those widths
   (`mcmc.sample_from_optimum`, shared with the fits of mock images).
@@ -96,7 +96,7 @@ def sample_observed_fit(fit: ObservedFit, method: str, options, seed: int,
                      "for a Gaussian): computing the Hessian of the sampled density")
         h_scale = hessian_scale(fit.model, fit.data, param, u0, fit.uncertainty.cov)
         h_mismatch = laplace_mismatch(fit.model, fit.data, param, u0, h_scale, seed)
-        if h_mismatch < mismatch or not np.isfinite(mismatch):
+        if _closer_to_gaussian(h_mismatch, mismatch):
             scale, mismatch, metric = h_scale, h_mismatch, "hessian"
     if progress and not mismatch <= MISMATCH_WARN:
         progress(f"the optimum's covariance misdescribes the posterior (Δln p {mismatch:.0f}× a "
@@ -120,6 +120,15 @@ def sample_observed_fit(fit: ObservedFit, method: str, options, seed: int,
     summary.update(laplace_mismatch=mismatch, metric=metric,
                    laplace_mismatch_fisher=fisher_mismatch)
     return SampledFit(sampled, chains, summary)
+
+
+def _closer_to_gaussian(check: float, other: float) -> bool:
+    """True where `laplace_mismatch` value `check` is nearer 1 (a unit Gaussian) than `other`
+    by |ln check|: a metric far too narrow (check ≪ 1) is no better than one too wide; a
+    non-positive or non-finite check never wins."""
+    if not (np.isfinite(check) and check > 0):
+        return False
+    return not (np.isfinite(other) and other > 0) or abs(np.log(check)) < abs(np.log(other))
 
 
 def unmixed_clumps(chains: ChainResult, n_clumps: int, rhat_max: float = RHAT_MAX) -> np.ndarray:
