@@ -100,6 +100,16 @@ class Grid:
                          self.y0_arcsec + pix[..., 1] * self.pixel_arcsec], -1)
 
 
+def rotation_matrix(angle_rad: float) -> np.ndarray:
+    """R [2, 2] turning vectors counter-clockwise by angle_rad."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s], [s, c]])
+
+
+# a pixel's corners, counter-clockwise, in pixels from its centre
+_UNIT_SQUARE = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+
+
 @dataclasses.dataclass(frozen=True)
 class RotatedGrid:
     """Square pixels whose axes are turned by `angle_rad` (counter-clockwise) from the
@@ -127,20 +137,16 @@ class RotatedGrid:
     def shape(self):
         return (self.ny, self.nx)
 
-    def _rotation(self):
-        c, s = np.cos(self.angle_rad), np.sin(self.angle_rad)
-        return np.array([[c, -s], [s, c]])
-
     def position_of(self, pix):
         """Points (arcsec) [..., 2] of 0-based (x, y) pixel coordinates `pix` [..., 2]."""
         pix = np.asarray(pix, float)
         return np.array([self.x0_arcsec, self.y0_arcsec]) + \
-            self.pixel_arcsec * pix @ self._rotation().T
+            self.pixel_arcsec * pix @ rotation_matrix(self.angle_rad).T
 
     def pixel_of(self, xy):
         """0-based (x, y) pixel coordinates of points xy [..., 2] (arcsec)."""
         d = np.asarray(xy, float) - np.array([self.x0_arcsec, self.y0_arcsec])
-        return d @ self._rotation() / self.pixel_arcsec       # R is orthogonal: R⁻¹ = Rᵀ
+        return d @ rotation_matrix(self.angle_rad) / self.pixel_arcsec       # R is orthogonal: R⁻¹ = Rᵀ
 
     def centers(self):
         """(x, y) [ny, nx]: every pixel's centre, arcsec."""
@@ -220,8 +226,7 @@ def _clipped_squares(src: Grid, corners, cx, cy, ii, jj):
     p, C = ii.shape
     x = src.x0_arcsec + ii.ravel() * ps
     y = src.y0_arcsec + jj.ravel() * ps
-    sq = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]) * ps
-    square = np.stack([x, y], -1)[:, None, :] + sq[None]                  # [n, 4, 2]
+    square = np.stack([x, y], -1)[:, None, :] + _UNIT_SQUARE[None] * ps    # [n, 4, 2]
     centre = np.stack([np.repeat(cx, C), np.repeat(cy, C)], -1)
     edges = [(corners[e], corners[(e + 1) % 4]) for e in range(4)]
     normals = [np.array([b[1] - a[1], a[0] - b[0]]) for a, b in edges]   # outward: CCW corners
@@ -261,7 +266,7 @@ def rotated_overlap(src: Grid, dst: RotatedGrid):
     sum to 0 over destination pixels that cover it: flux is conserved. Source pixels
     outside `src` contribute nothing; zero-weight padding points at pixel 0."""
     ps = src.pixel_arcsec
-    corners = dst.position_of(np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]))
+    corners = dst.position_of(_UNIT_SQUARE)
     corners = corners - np.array([dst.x0_arcsec, dst.y0_arcsec])       # [4, 2] around a centre
     cx, cy = (c.ravel() for c in dst.centers())
     # the source pixels that can touch a destination pixel: its bounding box, in source pixels

@@ -87,6 +87,12 @@ def _batched_physical(param, us):
 U_SIGMA_CAP = 1.0
 
 
+def _identity_entries(param: Parametrization) -> np.ndarray:
+    """[size] True for the entries of u whose transform is the identity (fluxes)."""
+    return np.array([leaf.transform.kind == "identity" for leaf in param.leaves
+                     for _ in leaf.index], bool)
+
+
 def whitening_scale(param: Parametrization, u, cov_x, cap: float = U_SIGMA_CAP) -> np.ndarray:
     """L with L Lᵀ = the covariance in u of the Laplace / Fisher covariance `cov_x` of the
     physical parameters at u (cov_u = D⁻¹ cov_x D⁻¹, D = dx/du, diagonal), for `run_nuts`'
@@ -97,8 +103,7 @@ def whitening_scale(param: Parametrization, u, cov_x, cap: float = U_SIGMA_CAP) 
     dinv = 1.0 / np.asarray(dxdu, float)
     cov_u = dinv[:, None] * np.asarray(cov_x, float) * dinv[None, :]
     var = np.diag(cov_u)
-    kinds = np.array([leaf.transform.kind for leaf in param.leaves for _ in leaf.index])
-    bad = ~np.isfinite(var) | (var <= 0) | ((kinds != "identity") & (var > cap ** 2))
+    bad = ~np.isfinite(var) | (var <= 0) | (~_identity_entries(param) & (var > cap ** 2))
     sd = np.where(bad, cap, np.sqrt(np.where(bad, 1.0, var)))
     corr = cov_u / np.outer(sd, sd)
     corr[bad, :] = 0.0
@@ -134,9 +139,8 @@ def hessian_scale(scene_model, data: ImageData, param: Parametrization, u, cov_x
     u = jnp.asarray(u)
     h = np.asarray(_neg_log_density_hessian(scene_model, data, param, u), float)
     _, dxdu = param.physical_and_slope(u)
-    kinds = np.array([leaf.transform.kind for leaf in param.leaves for _ in leaf.index])
     sd = np.sqrt(np.abs(np.diag(np.asarray(cov_x, float)))) / np.abs(np.asarray(dxdu, float))
-    d = np.where((kinds == "identity") & np.isfinite(sd) & (sd > 0), sd, 1.0)
+    d = np.where(_identity_entries(param) & np.isfinite(sd) & (sd > 0), sd, 1.0)
     hs = d[:, None] * np.where(np.isfinite(h), h, 0.0) * d[None, :]
     w, v = np.linalg.eigh(0.5 * (hs + hs.T))
     return d[:, None] * (v / np.sqrt(np.maximum(w, 1.0 / cap**2)))

@@ -24,7 +24,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from ..pixels import Grid
+from ..pixels import Grid, rotation_matrix
 
 GAUSS_RE_PER_SIGMA = 1.1774   # R_e / σ of a Gaussian (n = 0.5) profile: √(2 ln 2)
 APERTURE_PIXELS = 2.5         # radius of the candidates' aperture (photometry and moments)
@@ -96,9 +96,7 @@ def pixel_jacobians(scene_model, k: int, lens):
     g = scene_model.layouts[k].grid
     x, y = g.centers()
     # along the pixel axes: the frame's (a Grid), or turned by their angle (a RotatedGrid)
-    turn = (np.eye(2) if isinstance(g, Grid) else
-            np.array([[np.cos(g.angle_rad), -np.sin(g.angle_rad)],
-                      [np.sin(g.angle_rad), np.cos(g.angle_rad)]]))
+    turn = np.eye(2) if isinstance(g, Grid) else rotation_matrix(g.angle_rad)
     if lens is None:
         return x, y, np.broadcast_to(np.eye(2), x.shape + (2, 2))
     a1, a2 = lens.deflection(jnp.asarray(x), jnp.asarray(y))

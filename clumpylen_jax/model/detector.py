@@ -107,11 +107,11 @@ class DetectorBand(eqx.Module):
         s = (psf_oversampling if band.psf is not None else
              max(psf_oversampling, TURNED_MIN_OVERSAMPLING) if turned else 1)
         render = grid.covering() if turned else grid
+        sub = render.subdivided(s)
         angle = grid.angle_rad if turned else 0.0
         kernel = psf_kernel(band, band.pixel_arcsec / s, angle) if band.psf is not None else None
         to_pixels = None
         if turned:
-            sub = render.subdivided(s)
             if band.psf is not None and band.psf_effective:
                 index, weight = rotated_samples(sub, grid)
                 to_pixels = (jnp.asarray(index),   # a sample of flux per sub-pixel → per pixel
@@ -124,7 +124,7 @@ class DetectorBand(eqx.Module):
                    float(band.sky_counts_per_s),
                    None if kernel is None else kernel.shape, bool(band.psf_effective),
                    None if kernel is None else
-                   convolve.kernel_rfft(kernel, render.subdivided(s).shape, dtype), to_pixels)
+                   convolve.kernel_rfft(kernel, sub.shape, dtype), to_pixels)
 
     @property
     def sub_grid(self) -> Grid:
@@ -138,9 +138,7 @@ class DetectorBand(eqx.Module):
         if self.to_pixels is not None:
             apply = apply_sparse_map if len(self.to_pixels) == 2 else apply_overlap
             return apply(conv, *self.to_pixels, self.grid.shape)
-        if self.psf_shape is None:
-            return bin_blocks(sub, s)
-        if self.psf_effective:
+        if self.psf_shape is not None and self.psf_effective:
             # the PSF holds the pixel response: sample it at detector centres (DESIGN.md trap)
             return conv[s // 2::s, s // 2::s] * (s * s)
         return bin_blocks(conv, s)

@@ -26,7 +26,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import ConfigError
-from ..pixels import Grid, RotatedGrid
+from ..pixels import Grid, RotatedGrid, rotation_matrix
 
 # |M/s − R| allowed of a band's pixel axes against a rotation of the first one's (0.02 px
 # over 100 px); a band turned by less than this is taken as aligned
@@ -215,7 +215,7 @@ def fit_frame(frames, names, files=None) -> FitFrame:
             q0, M = _affine_to_reference(f, ref)
         s = float(np.sqrt(abs(np.linalg.det(M))))
         angle = float(np.arctan2(M[1, 0], M[0, 0]))
-        turn = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        turn = rotation_matrix(angle)
         if not (s > 0 and np.linalg.det(M) > 0 and np.max(np.abs(M / s - turn)) < ORIENTATION_TOL):
             raise ConfigError(f"observations[{names[k]}] ({files[k]})",
                               "pixel axes flipped or sheared against "
