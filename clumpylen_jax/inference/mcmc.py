@@ -65,6 +65,16 @@ class ChainResult(eqx.Module):
         return f.mean(axis=0), f.std(axis=0, ddof=1)
 
 
+def posterior_median(chains: ChainResult, param: Parametrization):
+    """(the state at the samples' median, the samples' median and covariance as an
+    `Uncertainty`): what a sampled fit reports."""
+    from .uncertainty import Uncertainty
+    flat = chains.flat_x()
+    med = np.median(flat, axis=0)
+    return (param.state_from_physical(jnp.asarray(med)),
+            Uncertainty(param.labels, jnp.asarray(med), jnp.asarray(np.atleast_2d(np.cov(flat.T)))))
+
+
 def _logdensity(scene_model, data, param, log_prior) -> Callable:
     return make_log_posterior(scene_model, data, param, log_prior=log_prior, jacobian=True)
 

@@ -22,13 +22,12 @@ from pathlib import Path
 from typing import Optional
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..errors import require
 from .catalog import errors_state, fit_table
 from .likelihood import make_data, predicted_images
-from .mcmc import ChainResult, sample_from_optimum, whitening_scale
+from .mcmc import ChainResult, posterior_median, sample_from_optimum, whitening_scale
 from .optimize import MapResult, fit_map, fit_map_multistart
 from .params import FitState, default_free, make_state, parametrize
 from .uncertainty import Uncertainty, fisher_uncertainty
@@ -149,12 +148,8 @@ def _sample_posterior(method, scene_model, data, param, u_start, cov_x, seed, mc
     chains = sample_from_optimum(method, scene_model, data, param, u_start,
                                  whitening_scale(param, u_start, cov_x), seed=seed,
                                  **dict(mcmc or {}))
-    flat = chains.flat_x()
-    med = np.median(flat, axis=0)
-    state = param.state_from_physical(jnp.asarray(med))
-    err = flat.std(axis=0, ddof=1)
-    unc = Uncertainty(param.labels, jnp.asarray(med), jnp.asarray(np.cov(flat.T).reshape(med.size, med.size)))
-    return chains, state, err, unc
+    state, unc = posterior_median(chains, param)
+    return chains, state, chains.flat_x().std(axis=0, ddof=1), unc
 
 
 def write_chains(path: Path, chains: ChainResult) -> Path:

@@ -36,14 +36,12 @@ import dataclasses
 import re
 import time
 
-import jax.numpy as jnp
 import numpy as np
 
-from ..inference.mcmc import (ChainResult, hessian_scale, laplace_mismatch, sample_from_optimum,
-                              whitening_scale)
+from ..inference.mcmc import (ChainResult, hessian_scale, laplace_mismatch, posterior_median,
+                              sample_from_optimum, whitening_scale)
 from ..inference.params import FreeLeaf, Parametrization, _getter
 from ..inference.transforms import Transform
-from ..inference.uncertainty import Uncertainty
 from .fit import ObservedFit, _chi2
 
 MISMATCH_WARN = 10.0   # `laplace_mismatch` above this: the progress output warns
@@ -104,13 +102,10 @@ def sample_observed_fit(fit: ObservedFit, method: str, options, seed: int,
                  "not mix (R̂ and flag 1 will say)")
     chains = sample_from_optimum(method, fit.model, fit.data, param, u0, scale, seed=seed,
                                  **sizes)
-    flat = chains.flat_x()
-    med = np.median(flat, axis=0)
-    state = param.state_from_physical(jnp.asarray(med))
-    unc = Uncertainty(param.labels, jnp.asarray(med), jnp.asarray(np.atleast_2d(np.cov(flat.T))))
+    state, unc = posterior_median(chains, param)
     _, images = _chi2(fit.model, fit.data, state)
     seconds = time.perf_counter() - t0
-    record = dict(stage=method, n_draws=int(flat.shape[0]), seconds=round(seconds, 3),
+    record = dict(stage=method, n_draws=int(chains.flat_x().shape[0]), seconds=round(seconds, 3),
                   cpu_seconds=round(time.process_time() - c0, 3))
     timings = {**fit.timings_s, "sampler": round(seconds, 3)}
     sampled = dataclasses.replace(fit, state=state, uncertainty=unc, images=tuple(images),
