@@ -26,9 +26,11 @@ the pulls measure the fitter and its errors), source Poisson noise (drizzled WHT
 carry the background's only), PSF mismatch.
 
     .venv/bin/python benchmarks/bench_observation_pulls.py [--seeds 4] [--formats jwst,hst]
-        [--psf-oversampling 1] [--name observation_pulls] [--keep DIR]
+        [--psf-oversampling 1] [--truth-oversampling N] [--name observation_pulls] [--keep DIR]
 
---psf-oversampling sets the fit's `[fit] psf_oversampling` and the mock's drawing alike.
+--psf-oversampling sets the fit's `[fit] psf_oversampling`; --truth-oversampling the mock's
+drawing (default: the same, so that the pulls measure the fitter; larger, e.g. 7, so that they
+also measure the fit's model error against a near-converged drawing).
 
 Writes benchmarks/results/<name>.{json,md}. With --keep DIR, a mock whose fit is already in DIR
 is evaluated again without fitting (the mocks are the same for the same seed).
@@ -144,8 +146,9 @@ def _in_own_frame(source: Source, frame, band_frame, k: int) -> tuple:
                       re_arcsec=c.re_arcsec, n=c.n, q=c.q, pa_rad=f(np.asarray(c.pa_rad) + turn)))
 
 
-def _mock(kind, seed, work: Path, psf_oversampling: int = 1):
-    """Write the mock's files and scene; returns (scene path, truth table, zero points)."""
+def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=None):
+    """Write the mock's files and scene (drawn at `truth_oversampling`, default the fit's
+    `psf_oversampling`); returns (scene path, truth table, zero points)."""
     rng = np.random.default_rng(500 + seed)
     bands = FORMATS[kind]
     rot = float(rng.uniform(0, 360))
@@ -170,7 +173,7 @@ def _mock(kind, seed, work: Path, psf_oversampling: int = 1):
                                  n=f(np.ones(N_CLUMPS)), q=f(np.ones(N_CLUMPS)),
                                  pa_rad=f(np.zeros(N_CLUMPS))))
     psfs = [load_psf_fits(_psf_file(work / f"psf_{name}.fits", pix)) for name, _, pix, _ in bands]
-    opts = FitOptions(clump_n=1.0, psf_oversampling=psf_oversampling)
+    opts = FitOptions(clump_n=1.0, psf_oversampling=truth_oversampling or psf_oversampling)
     model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
     images = [np.asarray(i) for i in model.band_images(truth)]
     for k, dr in enumerate(turn):
@@ -270,6 +273,8 @@ def main():
     ap.add_argument("--formats", default="jwst,hst")
     ap.add_argument("--name", default="observation_pulls")
     ap.add_argument("--psf-oversampling", type=int, default=1)
+    ap.add_argument("--truth-oversampling", type=int, default=None,
+                    help="the mock's drawing (default: --psf-oversampling)")
     ap.add_argument("--keep", default=None, help="work folder kept (files, scenes, fits)")
     args = ap.parse_args()
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="obs-pulls-"))
@@ -278,7 +283,8 @@ def main():
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             work = root / f"{kind}-{seed}"
             work.mkdir(parents=True, exist_ok=True)
-            scene, true, names, pix = _mock(kind, seed, work, args.psf_oversampling)
+            scene, true, names, pix = _mock(kind, seed, work, args.psf_oversampling,
+                                            args.truth_oversampling)
             t0 = time.time()
             done = work / "fit" / "summary.json"
             if done.is_file():    # --keep: a finished fit is evaluated again, not refitted
@@ -324,7 +330,8 @@ def main():
     write_json(args.name, payload)
     md = [f"# `clumpylen fit` pulls on mocks in real-product formats (issue 17)\n",
           f"{machine()['date']}; {N_CLUMPS} clumps per mock, z = {Z}, clumps = \"auto\" (no truth), "
-          f"psf_oversampling = {args.psf_oversampling}, "
+          f"psf_oversampling = {args.psf_oversampling} (mock drawn at "
+          f"{args.truth_oversampling or args.psf_oversampling}), "
           f"matched within {MATCH_PIX} finest pixels; {time.time() - t_all:.0f} s wall in all.\n",
           "| format | seed | fit s | χ²/dof | found | false | recovered |", "|---|---|---|---|---|---|---|"]
     for res in results:

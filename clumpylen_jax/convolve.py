@@ -46,10 +46,12 @@ def fft_shape(image_shape, kernel_shape):
                  for n, m in zip(image_shape, kernel_shape))
 
 
-def kernel_rfft(kernel, image_shape, dtype=np.float64):
-    """The kernel's rfft2 on the padded grid used by `fft_convolve` (precompute once per band)."""
-    k = check_kernel(kernel)
-    shape = fft_shape(image_shape, k.shape)
+def kernel_rfft(kernel, image_shape, dtype=np.float64, check=True):
+    """The kernel's rfft2 on the padded grid used by `fft_convolve` (precompute once per band).
+    check: validate and normalise it as a PSF (`check_kernel`); False for kernels that are
+    not one (a stack [..., ky, kx] of derivative kernels, `model.detector.psf_kernel`)."""
+    k = check_kernel(kernel) if check else np.asarray(kernel, float)
+    shape = fft_shape(image_shape, k.shape[-2:])
     # device_put, not jnp.asarray: the latter compiles a small program per shape
     return jax.device_put(np.fft.rfft2(k.astype(dtype), s=shape))
 
@@ -62,3 +64,14 @@ def fft_convolve(image, kernel_ft, kernel_shape):
     ft = jnp.fft.rfft2(image, s=shape)
     full = jnp.fft.irfft2(ft * kernel_ft.astype(ft.dtype), s=shape)
     return full[..., ky // 2:ky // 2 + ny, kx // 2:kx // 2 + nx].astype(image.dtype)
+
+
+def fft_convolve_sum(images, kernels_ft, kernel_shape):
+    """Σ_m images[m] ⊛ kernel m ([M, ny, nx] and their padded rfft2s [M, ...]): one inverse
+    transform for all."""
+    ny, nx = images.shape[-2:]
+    ky, kx = kernel_shape
+    shape = fft_shape((ny, nx), (ky, kx))
+    ft = jnp.fft.rfft2(images, s=shape)
+    full = jnp.fft.irfft2(jnp.sum(ft * kernels_ft.astype(ft.dtype), axis=0), s=shape)
+    return full[ky // 2:ky // 2 + ny, kx // 2:kx // 2 + nx].astype(images.dtype)

@@ -372,21 +372,25 @@ def _quiet_fits():
 # ----------------------------------------------------------------------------
 
 
-def _overlap_matrix(n_in: int, pitch_in: float, n_out: int, pitch_out: float) -> np.ndarray:
+def _overlap_matrix(n_in: int, pitch_in: float, n_out: int, pitch_out: float,
+                    shift: float = 0.0) -> np.ndarray:
     """Fraction of input pixel i that falls in output pixel j, shape (n_out, n_in)
     (`pixels.overlap_matrix` on two grids centred on 0: edges at (k − n/2)·pitch, so the
-    array centres coincide)."""
+    array centres coincide; the output's moved by `shift`, in the input's units)."""
     from .pixels import overlap_matrix
     return overlap_matrix((np.arange(n_in + 1) - n_in / 2.0) * pitch_in,
-                          (np.arange(n_out + 1) - n_out / 2.0) * pitch_out, src_pixel=pitch_in)
+                          (np.arange(n_out + 1) - n_out / 2.0) * pitch_out + shift,
+                          src_pixel=pitch_in)
 
 
-def resample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = None) -> np.ndarray:
+def resample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = None,
+                 shift_arcsec: tuple = (0.0, 0.0)) -> np.ndarray:
     """The PSF on a grid of pitch ``target_pixel_arcsec``, flux-conserving.
 
     The output has an odd number of pixels per axis (``size``, or by default the
     smallest odd number covering the whole input) and its central pixel is
-    centred on the PSF centre. Each output pixel receives the area overlap of
+    centred on the PSF centre, or ``shift_arcsec`` (x, y) from it (the kernel's
+    values a little way off its nodes: `model.detector.psf_kernels`). Each output pixel receives the area overlap of
     the input pixels (treated as piecewise constant), computed with separable
     overlap matrices, so any ratio of pixel scales works and the total is
     conserved; the result is renormalised to unit sum (which only matters when
@@ -415,16 +419,18 @@ def resample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = Non
         size,
         "an odd number of pixels >= 1",
     )
-    w0 = _overlap_matrix(n0, p, int(size), target_pixel_arcsec)
-    w1 = _overlap_matrix(n1, p, int(size), target_pixel_arcsec)
+    w0 = _overlap_matrix(n0, p, int(size), target_pixel_arcsec, shift_arcsec[1])
+    w1 = _overlap_matrix(n1, p, int(size), target_pixel_arcsec, shift_arcsec[0])
     out = w0 @ psf.array @ w1.T
     total = out.sum()
     require(total > 0, "psf_size", size, "a kernel large enough to hold some of the PSF flux")
     return out / total
 
 
-def sample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = None) -> np.ndarray:
-    """Point-sample the PSF at the pixel centres of an odd target grid.
+def sample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = None,
+               shift_arcsec: tuple = (0.0, 0.0)) -> np.ndarray:
+    """Point-sample the PSF at the pixel centres of an odd target grid (moved by
+    ``shift_arcsec`` (x, y) from the PSF centre where given).
 
     The right operation for an *effective* PSF (which already holds the
     detector pixel integral at every position): its value at a detector pixel
@@ -450,7 +456,8 @@ def sample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = None)
         size = 2 * half + 1
     require(isinstance(size, (int, np.integer)) and size >= 1 and size % 2 == 1, "psf_size", size, "an odd number of pixels >= 1")
     offsets = (np.arange(size) - (size - 1) / 2.0) * step
-    g0, g1 = np.meshgrid(c0 + offsets, c1 + offsets, indexing="ij")
+    g0, g1 = np.meshgrid(c0 + offsets + shift_arcsec[1] / psf.pixel_arcsec,
+                         c1 + offsets + shift_arcsec[0] / psf.pixel_arcsec, indexing="ij")
     out = ndimage.map_coordinates(psf.array, [g0, g1], order=3, mode="constant", cval=0.0)
     total = out.sum()
     require(total > 0, "psf_size", size, "a kernel large enough to hold some of the PSF flux")

@@ -182,6 +182,33 @@ def gaussian_pixel_fractions(edges_arcsec, center_arcsec, sigma_arcsec):
     return 0.5 * jnp.where(far_side, right[:, lo] - right[:, hi], left[:, hi] - left[:, lo])
 
 
+def gaussian_pixel_moments(edges_arcsec, center_arcsec, sigma_arcsec):
+    """(F, M1, M2) [N, M] of N 1-D Gaussians in the M pixels between M + 1 evenly spaced
+    `edges_arcsec`: the light fraction F (`gaussian_pixel_fractions`) and its first and
+    second moments about each pixel's centre c, in pixels: M1 = ∫(x − c) g dx / p and
+    M2 = ∫(x − c)² g dx / p² over the pixel (p its width), exact.
+
+    With t = (x − μ)/σ and φ the standard normal density, ∫(x − μ) g = σ[φ(t_a) − φ(t_b)]
+    and ∫(x − μ)² g = σ²[F + t_a φ(t_a) − t_b φ(t_b)]; the moments about c follow by
+    x − c = (x − μ) + (μ − c). No term divides by σ, so σ → 0 stays finite (φ underflows
+    to 0 far out, and its gradient with it)."""
+    edges_np = np.asarray(edges_arcsec, float)
+    pixel = float(edges_np[1] - edges_np[0])
+    dtype = jnp.result_type(center_arcsec, sigma_arcsec)
+    frac = gaussian_pixel_fractions(edges_arcsec, center_arcsec, sigma_arcsec)
+    edges = jnp.asarray(edges_np / pixel, dtype)                 # in pixels from here on
+    mu = center_arcsec[:, None] / pixel
+    sig = sigma_arcsec[:, None] / pixel
+    t = (edges[None, :] - mu) / sig
+    phi = jnp.exp(-0.5 * t * t) * jnp.asarray(1.0 / np.sqrt(2.0 * np.pi), dtype)
+    sig_phi = sig * phi                                          # σ φ(t) at each edge
+    first = sig_phi[:, :-1] - sig_phi[:, 1:]                     # ∫ (x − μ) g
+    second = sig * (sig * frac + (edges[None, :-1] - mu) * phi[:, :-1]
+                    - (edges[None, 1:] - mu) * phi[:, 1:])       # ∫ (x − μ)² g: σ t φ = (x − μ) φ
+    off = mu - 0.5 * (edges[None, :-1] + edges[None, 1:])        # μ − c
+    return frac, first + off * frac, second + 2.0 * off * first + off * off * frac
+
+
 
 def _sampled_image(brightness, grid: Grid, order: int, dtype):
     """∫ brightness over each pixel of `grid` by order × order Gauss–Legendre sampling."""

@@ -137,9 +137,10 @@ class RoundGaussianClumps(Renderer):
         flux = (cl.flux[:, None, :] * a[None, :, None]).reshape(-1, cl.flux.shape[1])
         out = {}
         for g in subgrids:
-            cols = render.gaussian_pixel_fractions(g.x_edges(), c1, sigma)
-            rows = render.gaussian_pixel_fractions(g.y_edges(), c2, sigma)
-            out[g] = SeparableLight(rows.T, cols.T, flux)
+            cols = render.gaussian_pixel_moments(g.x_edges(), c1, sigma)
+            rows = render.gaussian_pixel_moments(g.y_edges(), c2, sigma)
+            out[g] = SeparableLight(jnp.stack(rows).swapaxes(1, 2),
+                                    jnp.stack(cols).swapaxes(1, 2), flux)
         return out
 
     def magnifications(self, source: Source):

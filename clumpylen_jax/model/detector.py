@@ -54,10 +54,18 @@ class Band:
         return self
 
 
-def psf_kernel(band: Band, sub_pixel_arcsec: float, angle_rad: float = 0.0):
+def psf_kernel(band: Band, sub_pixel_arcsec: float, angle_rad: float = 0.0, *,
+               moments: bool = False):
     """The band's PSF as an odd kernel on the sub-grid: point samples of an effective PSF
     (it already holds the pixel integral), area averages of an optical one. angle_rad: the
-    band's pixel axes against the sub-grid's (the PSF image lies along the band's pixels)."""
+    band's pixel axes against the sub-grid's (the PSF image lies along the band's pixels).
+
+    moments: also return the kernels [5, k, k] that carry each sub-pixel's light moments
+    (x, y, x², y², xy about its centre, in sub-pixels; `SeparableLight`) through the PSF:
+    the second-order Taylor expansion of the kernel in the light's offset d,
+    K(u − d) ≈ K − d·∇K + ½ dᵀ∇∇K d, its derivatives as central differences of the
+    kernel made half a sub-pixel off its nodes (each of unit sum, so the moments move
+    light and never add any)."""
     from ..psf import PSF, resample_psf, rotate_psf, sample_psf
     psf = PSF(array=np.asarray(band.psf, float) / np.sum(band.psf),
               pixel_arcsec=float(band.psf_pixel_arcsec), effective=bool(band.psf_effective),
@@ -65,7 +73,23 @@ def psf_kernel(band: Band, sub_pixel_arcsec: float, angle_rad: float = 0.0):
     if angle_rad:
         psf = rotate_psf(psf, angle_rad)
     to_grid = sample_psf if band.psf_effective else resample_psf
-    return convolve.check_kernel(to_grid(psf, sub_pixel_arcsec), f"bands[{band.name}].psf")
+    kernel = convolve.check_kernel(to_grid(psf, sub_pixel_arcsec), f"bands[{band.name}].psf")
+    if not moments:
+        return kernel
+    h = 0.5 * sub_pixel_arcsec
+
+    def at(sx, sy):
+        if sx == sy == 0:
+            return kernel
+        return to_grid(psf, sub_pixel_arcsec, size=kernel.shape[0], shift_arcsec=(sx * h, sy * h))
+
+    # with steps of h = ½ sub-pixel: ∂x ≈ K(+h) − K(−h), ½∂x² ≈ 2[K(+h) − 2K + K(−h)],
+    # ∂x∂y ≈ K(+h,+h) − K(+h,−h) − K(−h,+h) + K(−h,−h)
+    slopes = np.stack([
+        -(at(1, 0) - at(-1, 0)), -(at(0, 1) - at(0, -1)),
+        2.0 * (at(1, 0) - 2.0 * kernel + at(-1, 0)), 2.0 * (at(0, 1) - 2.0 * kernel + at(0, -1)),
+        at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1)])
+    return kernel, slopes
 
 
 # sub-pixels per pixel of a turned band without a PSF: its light is not smooth on the pixel
@@ -98,18 +122,25 @@ class DetectorBand(eqx.Module):
     psf_ft: Optional[jnp.ndarray]                   # rFFT of the kernel padded to the sub-grid
     # sub-grid → turned pixels: (index, weight) samples or (index, weight, moment) overlaps
     to_pixels: Optional[tuple] = None
+    # rFFTs [5, ...] of the kernels that carry light moments through the PSF (`psf_kernel`)
+    moment_ft: Optional[jnp.ndarray] = None
 
     @classmethod
-    def build(cls, band: Band, grid, psf_oversampling: int, dtype):
+    def build(cls, band: Band, grid, psf_oversampling: int, dtype, moments: bool = False):
         """The band on `grid` (Grid or RotatedGrid); its PSF (if any) as a kernel on the
-        sub-grid."""
+        sub-grid. moments: a renderer hands light moments (`SeparableLight`): make the
+        kernels that carry them through the PSF."""
         turned = isinstance(grid, RotatedGrid)
         s = (psf_oversampling if band.psf is not None else
              max(psf_oversampling, TURNED_MIN_OVERSAMPLING) if turned else 1)
         render = grid.covering() if turned else grid
         sub = render.subdivided(s)
         angle = grid.angle_rad if turned else 0.0
-        kernel = psf_kernel(band, band.pixel_arcsec / s, angle) if band.psf is not None else None
+        kernel = slopes = None
+        if band.psf is not None:
+            kernel = psf_kernel(band, band.pixel_arcsec / s, angle, moments=moments)
+            if moments:
+                kernel, slopes = kernel
         to_pixels = None
         if turned:
             if band.psf is not None and band.psf_effective:
@@ -124,17 +155,28 @@ class DetectorBand(eqx.Module):
                    float(band.sky_counts_per_s),
                    None if kernel is None else kernel.shape, bool(band.psf_effective),
                    None if kernel is None else
-                   convolve.kernel_rfft(kernel, sub.shape, dtype), to_pixels)
+                   convolve.kernel_rfft(kernel, sub.shape, dtype), to_pixels,
+                   None if slopes is None else convolve.kernel_rfft(slopes, sub.shape, dtype,
+                                                                    check=False))
 
     @property
     def sub_grid(self) -> Grid:
         return self.render_grid.subdivided(self.oversampling)
 
-    def observe(self, sub):
-        """PSF and detector pixels: sub-grid flux image → detector counts/s (no sky)."""
+    def observe(self, sub, moments=None):
+        """PSF and detector pixels: sub-grid flux image → detector counts/s (no sky).
+        moments: the light's moments about each sub-pixel's centre [5, ny, nx] (x, y, x², y²,
+        xy, in sub-pixels; `SeparableLight`), or None; they matter only where a PSF acts
+        (binning keeps a sub-pixel's light whatever its place in it)."""
         s = self.oversampling
-        conv = sub if self.psf_shape is None else \
-            convolve.fft_convolve(sub, self.psf_ft, self.psf_shape)
+        if self.psf_shape is None:
+            conv = sub
+        elif moments is None or self.moment_ft is None:
+            conv = convolve.fft_convolve(sub, self.psf_ft, self.psf_shape)
+        else:
+            conv = convolve.fft_convolve_sum(
+                jnp.concatenate([sub[None], moments]),
+                jnp.concatenate([self.psf_ft[None], self.moment_ft]), self.psf_shape)
         if self.to_pixels is not None:
             apply = apply_sparse_map if len(self.to_pixels) == 2 else apply_overlap
             return apply(conv, *self.to_pixels, self.grid.shape)

@@ -18,10 +18,20 @@ from ..source import Source
 
 
 class Light:
-    """A renderer's light on one sub-grid, for every band (not a pytree: lives inside a trace)."""
+    """A renderer's light on one sub-grid, for every band (not a pytree: lives inside a trace).
+
+    has_moments: the light also knows where in each sub-pixel it lies (`add_band_moments`),
+    which the PSF then carries (`DetectorBand.observe`)."""
+
+    has_moments = False
 
     def add_band(self, image, k: int):
         """image + band k's light ([ny, nx] each)."""
+        raise NotImplementedError
+
+    def add_band_moments(self, moments, k: int):
+        """moments [5, ny, nx] + band k's light moments about each sub-pixel's centre (x, y,
+        x², y², xy, in sub-pixels, flux-weighted)."""
         raise NotImplementedError
 
 
@@ -65,14 +75,27 @@ class UnitImages(Light):
 class SeparableLight(Light):
     """Round Gaussian clumps on one sub-grid: light fractions per row [ny, N] and per column
     [nx, N] of each clump, and fluxes [N, B]; band k is rows · diag(flux[:, k]) · colsᵀ
-    (one matrix product per band, nothing of size clumps × pixels)."""
+    (one matrix product per band, nothing of size clumps × pixels).
+
+    Its moments are separable too: rows and cols are each (fraction, first, second moment
+    about the pixel centre) [3, n, N] (`render.gaussian_pixel_moments`), so a clump far
+    smaller than a sub-pixel still moves its image as its centre moves within one."""
+
+    has_moments = True
 
     def __init__(self, rows, cols, flux):
         self.rows, self.cols, self.flux = rows, cols, flux
         self.dtype = jnp.result_type(rows, flux)
 
     def add_band(self, image, k):
-        return image + (self.rows * self.flux[:, k]) @ self.cols.T
+        return image + (self.rows[0] * self.flux[:, k]) @ self.cols[0].T
+
+    def add_band_moments(self, moments, k):
+        r = self.rows * self.flux[:, k]
+        c = self.cols
+        # (x, y, x², y², xy): x runs along columns, y along rows
+        return moments + jnp.stack([r[0] @ c[1].T, r[1] @ c[0].T, r[0] @ c[2].T,
+                                    r[2] @ c[0].T, r[1] @ c[1].T])
 
 
 class Renderer(eqx.Module):

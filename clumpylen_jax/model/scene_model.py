@@ -121,7 +121,13 @@ class SceneModel(eqx.Module):
             sub = self._zeros(g.shape, source, parts)
             for part in parts:
                 sub = part.add_band(sub, k)
-            out.append(det.observe(sub))
+            moments = None
+            if det.moment_ft is not None and any(p.has_moments for p in parts):
+                moments = self._zeros((5,) + g.shape, source, parts)
+                for part in parts:
+                    if part.has_moments:
+                        moments = part.add_band_moments(moments, k)
+            out.append(det.observe(sub, moments))
         return tuple(out)
 
     def noiseless(self, source: Source):
@@ -296,8 +302,11 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     require_float64_mode(dtype)
     center, radius = source_extent(source, accuracy.source_flux_fraction,
                                    accuracy.stamp_flux_fraction)
-    layouts = tuple(DetectorBand.build(b, g, accuracy.psf_oversampling, dtype) for b, g in
-                    zip(bands, _band_grids(bands, grids, field_arcsec, lens, center, radius)))
+    # the Gaussian-mixture clumps hand the PSF their light's moments in each sub-pixel
+    moments = lens is None and accuracy.clump_pixels != "sersic"
+    layouts = tuple(DetectorBand.build(b, g, accuracy.psf_oversampling, dtype, moments)
+                    for b, g in zip(bands, _band_grids(bands, grids, field_arcsec, lens, center,
+                                                       radius)))
     if lens is None:
         clumps = (UnlensedClumps.build(source, layouts, accuracy)
                   if accuracy.clump_pixels == "sersic"
