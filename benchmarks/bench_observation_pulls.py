@@ -30,7 +30,10 @@ carry the background's only), PSF mismatch.
 
 --psf-oversampling sets the fit's `[fit] psf_oversampling`; --truth-oversampling the mock's
 drawing (default: the same, so that the pulls measure the fitter; larger, e.g. 7, so that they
-also measure the fit's model error against a near-converged drawing).
+also measure the fit's model error against a near-converged drawing). --psf-sampling N writes
+the PSF images N× finer than the pixels (default 1: an optical PSF at the pixel scale, which
+a finer sub-grid reads as piecewise constant, i.e. wider than the Gaussian by a pixel box:
+compare oversamplings with N ≥ the larger one).
 
 Writes benchmarks/results/<name>.{json,md}. With --keep DIR, a mock whose fit is already in DIR
 is evaluated again without fitting (the mocks are the same for the same seed).
@@ -97,10 +100,13 @@ def _header(shape, pixel_arcsec, rot_deg):
     return h
 
 
-def _psf_file(path, pixel_arcsec, size=15):
-    y, x = np.mgrid[:size, :size] - (size - 1) / 2
+def _psf_file(path, pixel_arcsec, size=15, sampling=1):
+    """A Gaussian PSF of σ PSF_SIGMA_PIX detector pixels over `size` of them, sampled
+    `sampling` times finer than the detector."""
+    n = size * sampling
+    y, x = (np.mgrid[:n, :n] - (n - 1) / 2) / sampling
     h = fits.Header()
-    h["PIXSCALE"] = pixel_arcsec
+    h["PIXSCALE"] = pixel_arcsec / sampling
     fits.PrimaryHDU(np.exp(-(x**2 + y**2) / (2 * PSF_SIGMA_PIX**2)), h).writeto(path, overwrite=True)
     return str(path)
 
@@ -146,7 +152,8 @@ def _in_own_frame(source: Source, frame, band_frame, k: int) -> tuple:
                       re_arcsec=c.re_arcsec, n=c.n, q=c.q, pa_rad=f(np.asarray(c.pa_rad) + turn)))
 
 
-def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=None):
+def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=None,
+          psf_sampling: int = 1):
     """Write the mock's files and scene (drawn at `truth_oversampling`, default the fit's
     `psf_oversampling`); returns (scene path, truth table, zero points)."""
     rng = np.random.default_rng(500 + seed)
@@ -172,7 +179,7 @@ def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=
                    clumps=Clumps(center_arcsec=f(t["pos"]), flux=f(flux), re_arcsec=f(t["re"]),
                                  n=f(np.ones(N_CLUMPS)), q=f(np.ones(N_CLUMPS)),
                                  pa_rad=f(np.zeros(N_CLUMPS))))
-    psfs = [load_psf_fits(_psf_file(work / f"psf_{name}.fits", pix)) for name, _, pix, _ in bands]
+    psfs = [load_psf_fits(_psf_file(work / f"psf_{name}.fits", pix, sampling=psf_sampling)) for name, _, pix, _ in bands]
     opts = FitOptions(clump_n=1.0, psf_oversampling=truth_oversampling or psf_oversampling)
     model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
     images = [np.asarray(i) for i in model.band_images(truth)]
@@ -273,6 +280,8 @@ def main():
     ap.add_argument("--formats", default="jwst,hst")
     ap.add_argument("--name", default="observation_pulls")
     ap.add_argument("--psf-oversampling", type=int, default=1)
+    ap.add_argument("--psf-sampling", type=int, default=1,
+                    help="PSF images this many times finer than the pixels (odd)")
     ap.add_argument("--truth-oversampling", type=int, default=None,
                     help="the mock's drawing (default: --psf-oversampling)")
     ap.add_argument("--keep", default=None, help="work folder kept (files, scenes, fits)")
@@ -284,7 +293,7 @@ def main():
             work = root / f"{kind}-{seed}"
             work.mkdir(parents=True, exist_ok=True)
             scene, true, names, pix = _mock(kind, seed, work, args.psf_oversampling,
-                                            args.truth_oversampling)
+                                            args.truth_oversampling, args.psf_sampling)
             t0 = time.time()
             done = work / "fit" / "summary.json"
             if done.is_file():    # --keep: a finished fit is evaluated again, not refitted
@@ -331,7 +340,8 @@ def main():
     md = [f"# `clumpylen fit` pulls on mocks in real-product formats (issue 17)\n",
           f"{machine()['date']}; {N_CLUMPS} clumps per mock, z = {Z}, clumps = \"auto\" (no truth), "
           f"psf_oversampling = {args.psf_oversampling} (mock drawn at "
-          f"{args.truth_oversampling or args.psf_oversampling}), "
+          f"{args.truth_oversampling or args.psf_oversampling}), PSF images sampled "
+          f"{args.psf_sampling}× finer than the pixels, "
           f"matched within {MATCH_PIX} finest pixels; {time.time() - t_all:.0f} s wall in all.\n",
           "| format | seed | fit s | χ²/dof | found | false | recovered |", "|---|---|---|---|---|---|---|"]
     for res in results:
