@@ -389,11 +389,11 @@ def resample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = Non
 
     The output has an odd number of pixels per axis (``size``, or by default the
     smallest odd number covering the whole input) and its central pixel is
-    centred on the PSF centre, or ``shift_arcsec`` (x, y) from it (the kernel's
-    values a little way off its nodes: `model.detector.psf_kernels`). Each output pixel receives the area overlap of
-    the input pixels (treated as piecewise constant), computed with separable
-    overlap matrices, so any ratio of pixel scales works and the total is
-    conserved; the result is renormalised to unit sum (which only matters when
+    centred on the PSF centre, or ``shift_arcsec`` (x, y) from it (the kernel a
+    little way off its nodes: `model.detector.psf_kernel`). Each output pixel
+    receives the area overlap of the input pixels (treated as piecewise
+    constant), computed with separable overlap matrices, so any ratio of pixel
+    scales works and the total is conserved; the result is renormalised to unit sum (which only matters when
     ``size`` truncates the PSF).
 
     Note: for an *effective* PSF, area-averaging onto coarser pixels blurs it by
