@@ -61,7 +61,7 @@ def psf_kernel(band: Band, sub_pixel_arcsec: float, angle_rad: float = 0.0, *,
     band's pixel axes against the sub-grid's (the PSF image lies along the band's pixels).
 
     moments: also return the kernels [5, k, k] that carry each sub-pixel's light moments
-    (x, y, x², y², xy about its centre, in sub-pixels; `SeparableLight`) through the PSF:
+    (`renderer.MOMENTS`, in that order; `SeparableLight`) through the PSF:
     the second-order Taylor expansion of the kernel in the light's offset d,
     K(u − d) ≈ K − d·∇K + ½ dᵀ∇∇K d, its derivatives as central differences of the
     kernel made half a sub-pixel off its nodes (each of unit sum, so the moments move
@@ -79,8 +79,6 @@ def psf_kernel(band: Band, sub_pixel_arcsec: float, angle_rad: float = 0.0, *,
     h = 0.5 * sub_pixel_arcsec
 
     def at(sx, sy):
-        if sx == sy == 0:
-            return kernel
         return to_grid(psf, sub_pixel_arcsec, size=kernel.shape[0], shift_arcsec=(sx * h, sy * h))
 
     # with steps of h = ½ sub-pixel: ∂x ≈ K(+h) − K(−h), ½∂x² ≈ 2[K(+h) − 2K + K(−h)],
@@ -165,9 +163,10 @@ class DetectorBand(eqx.Module):
 
     def observe(self, sub, moments=None):
         """PSF and detector pixels: sub-grid flux image → detector counts/s (no sky).
-        moments: the light's moments about each sub-pixel's centre [5, ny, nx] (x, y, x², y²,
-        xy, in sub-pixels; `SeparableLight`), or None; they matter only where a PSF acts
-        (binning keeps a sub-pixel's light whatever its place in it)."""
+        moments: the light's moments about each sub-pixel's centre [5, ny, nx]
+        (`renderer.MOMENTS`; `SeparableLight`), or None; read only where a PSF acts. Without
+        a PSF, binning keeps a sub-pixel's light whatever its place in it; a turned band's
+        overlaps (no PSF) take their slopes from neighbouring sub-pixels instead."""
         s = self.oversampling
         if self.psf_shape is None:
             conv = sub

@@ -17,6 +17,11 @@ import jax.numpy as jnp
 from ..source import Source
 
 
+# the light moments about each sub-pixel's centre that a renderer may hand the PSF, in this
+# order (`Light.add_band_moments`, `detector.psf_kernel`): flux-weighted, in sub-pixels
+MOMENTS = ("x", "y", "x²", "y²", "xy")
+
+
 class Light:
     """A renderer's light on one sub-grid, for every band (not a pytree: lives inside a trace).
 
@@ -30,8 +35,7 @@ class Light:
         raise NotImplementedError
 
     def add_band_moments(self, moments, k: int):
-        """moments [5, ny, nx] + band k's light moments about each sub-pixel's centre (x, y,
-        x², y², xy, in sub-pixels, flux-weighted)."""
+        """moments [len(MOMENTS), ny, nx] + band k's light moments (`MOMENTS`)."""
         raise NotImplementedError
 
 
@@ -73,12 +77,11 @@ class UnitImages(Light):
 
 
 class SeparableLight(Light):
-    """Round Gaussian clumps on one sub-grid: light fractions per row [ny, N] and per column
-    [nx, N] of each clump, and fluxes [N, B]; band k is rows · diag(flux[:, k]) · colsᵀ
-    (one matrix product per band, nothing of size clumps × pixels).
-
-    Its moments are separable too: rows and cols are each (fraction, first, second moment
-    about the pixel centre) [3, n, N] (`render.gaussian_pixel_moments`), so a clump far
+    """Round Gaussian clumps on one sub-grid: per row [3, ny, N] and per column [3, nx, N]
+    of each clump, its light fraction and first and second moments about the pixel's
+    centre (`render.gaussian_pixel_moments`), and fluxes [N, B]. Band k is rows[0] ·
+    diag(flux[:, k]) · cols[0]ᵀ (one matrix product per band, nothing of size clumps ×
+    pixels), and its moments are separable the same way (5 more products), so a clump far
     smaller than a sub-pixel still moves its image as its centre moves within one."""
 
     has_moments = True

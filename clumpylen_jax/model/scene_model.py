@@ -40,7 +40,7 @@ from .clumps import (AnalyticClumps, LensedClumps, LinearisedClumps, RoundGaussi
 from .detector import DetectorBand
 from .hosts import HeldHosts, HostCore, LensPlaneHosts, UnlensedHosts
 from .lensplane import LensPlane
-from .renderer import Renderer, first_band_per_subgrid, n_bands
+from .renderer import MOMENTS, Renderer, first_band_per_subgrid, n_bands
 
 _radius_enclosing = profiles.sersic_radius_enclosing_np  # numpy, build-time only
 
@@ -123,7 +123,7 @@ class SceneModel(eqx.Module):
                 sub = part.add_band(sub, k)
             moments = None
             if det.moment_ft is not None and any(p.has_moments for p in parts):
-                moments = self._zeros((5,) + g.shape, source, parts)
+                moments = self._zeros((len(MOMENTS),) + g.shape, source, parts)
                 for part in parts:
                     if part.has_moments:
                         moments = part.add_band_moments(moments, k)
