@@ -355,7 +355,12 @@ def test_mock_mjy_sr_rotated_wcs_two_scales_fitted_back_with_honest_pulls(tmp_pa
     for i in range(2):
         j = int(np.argmin(np.hypot(t["ra_deg"] - true_radec[0][i], t["dec_deg"] - true_radec[1][i])))
         for b, (name, zp) in enumerate(zip(("F150W", "F444W"), zps)):
-            true_mag = zp - 2.5 * np.log10(float(truth.clumps.flux[i, b]))
+            true_flux = float(truth.clumps.flux[i, b])
+            if t[f"uplim_{name}"][j]:   # not detected there (flag 16): the flux's pull
+                assert t["flag"][j] & 16 and not np.isfinite(t[f"mag_{name}_err"][j])
+                pulls.append((t[f"flux_{name}"][j] - true_flux) / t[f"flux_{name}_err"][j])
+                continue
+            true_mag = zp - 2.5 * np.log10(true_flux)
             pulls.append((t[f"mag_{name}"][j] - true_mag) / t[f"mag_{name}_err"][j])
         pulls.append((t["ra_deg"][j] - true_radec[0][i]) / t["ra_deg_err"][j])
         pulls.append((t["dec_deg"][j] - true_radec[1][i]) / t["dec_deg_err"][j])
