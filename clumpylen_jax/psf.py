@@ -393,8 +393,8 @@ def resample_psf(psf: PSF, target_pixel_arcsec: float, *, size: int | None = Non
     little way off its nodes: `model.detector.psf_kernel`). Each output pixel
     receives the area overlap of the input pixels (treated as piecewise
     constant), computed with separable overlap matrices, so any ratio of pixel
-    scales works and the total is conserved; the result is renormalised to unit sum (which only matters when
-    ``size`` truncates the PSF).
+    scales works and the total is conserved; the result is renormalised to unit
+    sum (which only matters when ``size``, or the shift, cuts off some of the PSF).
 
     Note: for an *effective* PSF, area-averaging onto coarser pixels blurs it by
     the target pixel once more; to get a detector-pixel kernel from an
@@ -474,17 +474,16 @@ def rotate_psf(psf: PSF, angle_rad: float) -> PSF:
     unit sum. An identity for angle_rad = 0 (up to the padding)."""
     from scipy import ndimage
 
+    from .pixels import rotation_matrix
     n0, n1 = psf.array.shape
     size = int(math.ceil(math.hypot(n0, n1)))
     size += 1 - size % 2
     c = (size - 1) / 2.0
     c0, c1 = psf.center
     # output pixel (row j, column i) at frame offset v = (i − c, j − c) reads the input at
-    # u = Rᵀ v along the band's axes: x_in = cos·vx + sin·vy, y_in = −sin·vx + cos·vy
-    ca, sa = math.cos(angle_rad), math.sin(angle_rad)
+    # u = Rᵀ v along the band's axes
     j, i = np.mgrid[:size, :size] - c
-    x_in = ca * i + sa * j
-    y_in = -sa * i + ca * j
+    x_in, y_in = np.einsum("ba,bjk->ajk", rotation_matrix(angle_rad), np.stack([i, j]))
     out = ndimage.map_coordinates(psf.array, [c0 + y_in, c1 + x_in], order=3, mode="constant",
                                   cval=0.0)
     out = np.clip(out, 0.0, None)

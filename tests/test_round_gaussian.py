@@ -236,7 +236,8 @@ def test_moments_move_light_and_add_none():
         model = build_model(src, [band], grids=[Grid(-0.6, -0.6, PIX, 40, 40)],
                             accuracy=Accuracy(clump_pixels="round_gaussian", psf_oversampling=s))
         ft = np.asarray(model.layouts[0].moment_ft)
-        np.testing.assert_allclose(ft[:, 0, 0].real, 0.0, atol=1e-14)   # the kernels' sums
+        assert ft[0, 0, 0].real == pytest.approx(1.0, abs=1e-14)        # the PSF's sum
+        np.testing.assert_allclose(ft[1:, 0, 0].real, 0.0, atol=1e-14)  # the moments' kernels
         img = np.asarray(eqx.filter_jit(model.band_images)(src)[0])
         assert img.sum() == pytest.approx(1.0, abs=1e-12)
 

@@ -120,7 +120,8 @@ class DetectorBand(eqx.Module):
     psf_ft: Optional[jnp.ndarray]                   # rFFT of the kernel padded to the sub-grid
     # sub-grid → turned pixels: (index, weight) samples or (index, weight, moment) overlaps
     to_pixels: Optional[tuple] = None
-    # rFFTs [5, ...] of the kernels that carry light moments through the PSF (`psf_kernel`)
+    # rFFTs [6, ...] of the kernel and the 5 that carry light moments through the PSF
+    # (`psf_kernel`), stacked once here rather than in every `observe`
     moment_ft: Optional[jnp.ndarray] = None
 
     @classmethod
@@ -154,8 +155,8 @@ class DetectorBand(eqx.Module):
                    None if kernel is None else kernel.shape, bool(band.psf_effective),
                    None if kernel is None else
                    convolve.kernel_rfft(kernel, sub.shape, dtype), to_pixels,
-                   None if slopes is None else convolve.kernel_rfft(slopes, sub.shape, dtype,
-                                                                    check=False))
+                   None if slopes is None else convolve.kernel_rfft(
+                       np.concatenate([kernel[None], slopes]), sub.shape, dtype, check=False))
 
     @property
     def sub_grid(self) -> Grid:
@@ -173,9 +174,8 @@ class DetectorBand(eqx.Module):
         elif moments is None or self.moment_ft is None:
             conv = convolve.fft_convolve(sub, self.psf_ft, self.psf_shape)
         else:
-            conv = convolve.fft_convolve_sum(
-                jnp.concatenate([sub[None], moments]),
-                jnp.concatenate([self.psf_ft[None], self.moment_ft]), self.psf_shape)
+            conv = convolve.fft_convolve_sum(jnp.concatenate([sub[None], moments]),
+                                             self.moment_ft, self.psf_shape)
         if self.to_pixels is not None:
             apply = apply_sparse_map if len(self.to_pixels) == 2 else apply_overlap
             return apply(conv, *self.to_pixels, self.grid.shape)

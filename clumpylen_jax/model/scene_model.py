@@ -302,15 +302,17 @@ def build_model(source: Source, bands, *, lens=None, field_arcsec=None,
     require_float64_mode(dtype)
     center, radius = source_extent(source, accuracy.source_flux_fraction,
                                    accuracy.stamp_flux_fraction)
-    # the Gaussian-mixture clumps hand the PSF their light's moments in each sub-pixel
-    moments = lens is None and accuracy.clump_pixels != "sersic"
-    layouts = tuple(DetectorBand.build(b, g, accuracy.psf_oversampling, dtype, moments)
+    # the Gaussian-mixture clumps (no stamps, so no layouts needed) hand the PSF their
+    # light's moments in each sub-pixel (`SeparableLight`): the bands make kernels for them
+    mixture = (RoundGaussianClumps.build(source, accuracy.clump_pixels)
+               if lens is None and accuracy.clump_pixels != "sersic" else None)
+    layouts = tuple(DetectorBand.build(b, g, accuracy.psf_oversampling, dtype,
+                                       moments=mixture is not None)
                     for b, g in zip(bands, _band_grids(bands, grids, field_arcsec, lens, center,
                                                        radius)))
     if lens is None:
-        clumps = (UnlensedClumps.build(source, layouts, accuracy)
-                  if accuracy.clump_pixels == "sersic"
-                  else RoundGaussianClumps.build(source, accuracy.clump_pixels))
+        clumps = mixture if mixture is not None else \
+            UnlensedClumps.build(source, layouts, accuracy)
         return SceneModel(layouts, UnlensedHosts.build(source, layouts, accuracy), clumps, None,
                           accuracy)
     require(accuracy.clump_pixels == "sersic", "render.accuracy.clump_pixels",
