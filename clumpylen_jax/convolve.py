@@ -41,8 +41,11 @@ def check_kernel(kernel, name="psf"):
 
 
 def fft_shape(image_shape, kernel_shape):
-    """Padded FFT shape for a linear convolution (fast sizes for scipy/numpy FFTs)."""
-    return tuple(scipy.fft.next_fast_len(int(n + m - 1), real=True)
+    """Padded FFT shape for a linear convolution cropped to the image (its entries k//2 …
+    k//2 + n − 1, `fft_convolve`): n + k//2 per axis, not the whole n + k − 1, is what keeps
+    the circular convolution's wrapped terms out of that crop (at least k, to hold the
+    kernel), rounded up to a fast size. For a 120² image and a 91² PSF: 180², not 210²."""
+    return tuple(scipy.fft.next_fast_len(int(max(n + m // 2, m)), real=True)
                  for n, m in zip(image_shape, kernel_shape))
 
 

@@ -201,6 +201,27 @@ def test_psf_convolution_conserves_flux_and_centres_a_point(size):
     assert out[:, -5:].max() < 1e-12 and out.sum() < 0.99
 
 
+@pytest.mark.parametrize("image_shape,kernel_shape", [((61, 47), (21, 9)), ((12, 40), (41, 31)),
+                                                      ((5, 5), (3, 61)), ((120, 120), (91, 91))])
+def test_fft_convolution_is_the_cropped_linear_convolution(image_shape, kernel_shape):
+    """`convolve.fft_convolve` and `fft_convolve_sum` on the smallest padding that keeps the
+    wrapped terms out of the crop (`fft_shape`: n + k//2, at least k) against direct
+    convolution (scipy, mode "same"), for random images and kernels, kernels larger than the
+    image included."""
+    from scipy.signal import convolve2d
+    rng = np.random.default_rng(sum(image_shape + kernel_shape))
+    imgs = rng.normal(size=(3,) + image_shape)
+    kernels = rng.random((3,) + kernel_shape)
+    want = [convolve2d(i, k, mode="same") for i, k in zip(imgs, kernels)]
+    for i, k, w in zip(imgs, kernels, want):
+        got = np.asarray(convolve.fft_convolve(jnp.asarray(i), convolve.kernel_rfft(
+            k, image_shape, check=False), kernel_shape))
+        np.testing.assert_allclose(got, w, rtol=0, atol=1e-12 * np.abs(w).max())
+    got = np.asarray(convolve.fft_convolve_sum(jnp.asarray(imgs), convolve.kernel_rfft(
+        kernels, image_shape, check=False), kernel_shape))
+    np.testing.assert_allclose(got, sum(want), rtol=0, atol=1e-12 * np.abs(sum(want)).max())
+
+
 def test_model_psf_band_conserves_flux_and_effective_psf_is_not_double_counted():
     src = Source(bulge=Sersic(f64([50.0]), f64(0.05), f64(1.0), f64(1.0), f64(0.0), f64([0.0, 0.0])))
     psf = gaussian_psf(41, 4.0)  # sampled at 0.01": an optical PSF of σ = 0.04"
