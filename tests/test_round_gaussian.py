@@ -225,6 +225,35 @@ def test_moments_match_quadrature():
                 np.testing.assert_allclose([frac[j], m1[j], m2[j]], want, rtol=1e-8, atol=1e-14)
 
 
+def test_moments_of_wide_gaussians_series_and_float32():
+    """Above `render.SERIES_SIGMA_PIXELS` the moments are the Taylor series of g about each
+    pixel's centre: within 1e-5 of the largest M2 of adaptive quadrature just above the
+    switch (σ 6.5 px), and in float32 within 1e-5 of float64 for σ 8 and 42 px (the exact
+    form's shift to the centre cancels there: 2e-3 at 42 px before the series)."""
+    edges = np.arange(-30, 31) * 0.05
+    for sigma_pix, mu_pix in ((6.5, 0.3), (6.5, 11.7)):
+        mu, sig = mu_pix * 0.05, sigma_pix * 0.05
+        got = [np.asarray(a)[0] for a in render.gaussian_pixel_moments(
+            edges, jnp.asarray([mu]), jnp.asarray([sig]))]
+        g = lambda x: np.exp(-0.5 * ((x - mu) / sig) ** 2) / (np.sqrt(2 * np.pi) * sig)  # noqa: E731
+        for j in range(0, edges.size - 1, 7):
+            a, b = edges[j], edges[j + 1]
+            c = 0.5 * (a + b)
+            want = [integrate.quad(lambda x: g(x) * ((x - c) / 0.05) ** p, a, b,
+                                   epsabs=1e-15, epsrel=1e-11)[0] for p in (1, 2)]
+            np.testing.assert_allclose([got[1][j], got[2][j]], want, rtol=0,
+                                       atol=1e-5 * np.abs(got[2]).max())
+    for sigma_pix in (8.0, 42.0):
+        mu = jnp.asarray([3.37 * 0.05])
+        m64 = [np.asarray(a) for a in render.gaussian_pixel_moments(
+            edges, mu, jnp.asarray([sigma_pix * 0.05]))]
+        m32 = [np.asarray(a, float) for a in render.gaussian_pixel_moments(
+            edges, mu.astype(jnp.float32),
+            jnp.asarray([sigma_pix * 0.05], jnp.float32))]
+        for a, b in zip(m32[1:], m64[1:]):
+            assert np.abs(a - b).max() < 1e-5 * np.abs(m64[2]).max(), sigma_pix
+
+
 def test_moments_move_light_and_add_none():
     """Through a PSF with the light's moments, a compact clump well inside the field keeps
     its flux: every kernel that carries the moments sums to 0 (each is a difference of
