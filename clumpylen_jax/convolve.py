@@ -59,22 +59,23 @@ def kernel_rfft(kernel, image_shape, dtype=np.float64, check=True):
     return jax.device_put(np.fft.rfft2(k.astype(dtype), s=shape))
 
 
-def fft_convolve(image, kernel_ft, kernel_shape):
-    """Linear convolution of `image` [..., ny, nx] with a kernel given by its padded rfft2."""
-    ny, nx = image.shape[-2:]
+def _convolved(images, kernel_shape, combine):
+    """The padded rfft2 of images [..., ny, nx], `combine`d (multiplied by the kernels' rfft2,
+    summed), transformed back and cropped to the image: the one crop `fft_shape` pads for."""
+    ny, nx = images.shape[-2:]
     ky, kx = kernel_shape
     shape = fft_shape((ny, nx), (ky, kx))
-    ft = jnp.fft.rfft2(image, s=shape)
-    full = jnp.fft.irfft2(ft * kernel_ft.astype(ft.dtype), s=shape)
-    return full[..., ky // 2:ky // 2 + ny, kx // 2:kx // 2 + nx].astype(image.dtype)
+    full = jnp.fft.irfft2(combine(jnp.fft.rfft2(images, s=shape)), s=shape)
+    return full[..., ky // 2:ky // 2 + ny, kx // 2:kx // 2 + nx].astype(images.dtype)
+
+
+def fft_convolve(image, kernel_ft, kernel_shape):
+    """Linear convolution of `image` [..., ny, nx] with a kernel given by its padded rfft2."""
+    return _convolved(image, kernel_shape, lambda ft: ft * kernel_ft.astype(ft.dtype))
 
 
 def fft_convolve_sum(images, kernels_ft, kernel_shape):
     """Σ_m images[m] ⊛ kernel m ([M, ny, nx] and their padded rfft2s [M, ...]): one inverse
     transform for all."""
-    ny, nx = images.shape[-2:]
-    ky, kx = kernel_shape
-    shape = fft_shape((ny, nx), (ky, kx))
-    ft = jnp.fft.rfft2(images, s=shape)
-    full = jnp.fft.irfft2(jnp.sum(ft * kernels_ft.astype(ft.dtype), axis=0), s=shape)
-    return full[ky // 2:ky // 2 + ny, kx // 2:kx // 2 + nx].astype(images.dtype)
+    return _convolved(images, kernel_shape,
+                      lambda ft: jnp.sum(ft * kernels_ft.astype(ft.dtype), axis=0))

@@ -92,10 +92,10 @@ class RoundGaussianClumps(Renderer):
 
     A round Gaussian is separable: its light in pixel (i, j) is the product of its 1-D
     fractions along x in column i and along y in row j (`render.gaussian_pixel_moments`:
-    erfc differences, with the moments the PSF carries), so the image of N clumps of K components is rows [ny, N K] ·
-    diag(flux × amplitude) · cols [nx, N K]ᵀ. The cost is ~2 N K (nx + ny) erfc per
-    sub-grid, at any R_e and any centre (off the grid included), and a clump that grows in a
-    fit is never cut by a stamp.
+    erfc differences, with the moments the PSF carries), so the image of N clumps of K
+    components is rows [ny, N K] · diag(flux × amplitude) · cols [nx, N K]ᵀ. The cost is
+    ~2 N K (nx + ny) erfc per sub-grid, at any R_e and any centre (off the grid included),
+    and a clump that grows in a fit is never cut by a stamp.
 
     amplitudes, sigma_per_re: the mixture (light fraction and σ / R_e of each component).
     The source's n, q and PA are not read when rendering: `build` checks that every clump is
