@@ -392,26 +392,39 @@ def test_local_normal_equations_with_a_host():
                           jnp.asarray(slots), jnp.asarray(idx), host.size, (1,))
 
 
-@pytest.mark.slow
-def test_rows_fisher_is_the_full_models():
-    """`capacity.fisher_of_rows` (kept rows only) is the kept block of the Fisher matrix of
-    every slot with the active mask."""
+def test_final_refit_errors_are_the_full_models_fisher():
+    """`auto._uncertainty` from a local solve's JᵀJ at its optimum (the final refit's: no
+    program of its own) is the inverse of the kept block of the Fisher matrix of every slot
+    with the active mask, in physical parameters; entries outside the solve are NaN."""
+    import types
+
     from clumpylen_jax.inference import capacity
-    from clumpylen_jax.inference.uncertainty import fisher_matrix
-    model, data, param, u, active, _, _ = _rows_case()
+    from clumpylen_jax.inference.likelihood import make_data, predicted_images
+    from clumpylen_jax.inference.uncertainty import fisher_matrix, safe_inverse
+    model, _, param, u, active, _, _ = _rows_case()
+    truth = np.asarray(predicted_images(model, param.state(u))[0])
+    data = make_data(model, [truth], [np.full(truth.shape, 0.01)], kind="gaussian")
     kept = np.array([0, 1, 3])
-    entries = np.r_[param.size - 1, kept, 4 + np.ravel([[2 * k, 2 * k + 1] for k in kept]), 12 + kept]
-    f_rows = np.asarray(capacity.fisher_of_rows(model, data, param, u, jnp.asarray(entries),
-                                                jnp.asarray(kept), active))
-    f_all = np.asarray(fisher_matrix(model, param, param.physical_vector(u), data, active=active))
-    f_ref = f_all[np.ix_(entries, entries)]
-    # in units of each pair's √(F_ii F_jj) (the correlation scale): entries that vanish
-    # analytically (the background against a clump's position: a shift's derivative image
-    # sums to zero) are rounding either way, ~1e-14 against a diagonal of 1681
-    d = np.sqrt(np.diag(f_ref))
+    idx = np.r_[param.size - 1, np.ravel([[i, 4 + 2 * i, 5 + 2 * i, 12 + i] for i in kept])]
+    out, _, ok, n, jtj = capacity.solve_local_batch(
+        model, data, param, (u + 0.05)[None], jnp.asarray(idx[None]), jnp.asarray(kept[None]),
+        active[None], jnp.asarray(1e-10), jnp.asarray([50]), 1, 3)
+    assert bool(ok[0]) and int(n[0]) > 1
+    u_opt = jnp.asarray(out[0])
+    unc = auto._uncertainty(types.SimpleNamespace(param=param), u_opt, jtj[0], idx)
+    f_all = np.asarray(fisher_matrix(model, param, param.physical_vector(u_opt), data,
+                                     active=active))
+    ref = np.asarray(safe_inverse(jnp.asarray(f_all[np.ix_(idx, idx)])))
+    cov = np.asarray(unc.cov)
+    d = np.sqrt(np.diag(ref))
     assert np.all(d > 0)
-    assert np.allclose(f_rows / np.outer(d, d), f_ref / np.outer(d, d), rtol=0, atol=1e-10)
-    assert np.allclose(np.diag(f_rows), d**2, rtol=1e-10, atol=0)
+    # in units of each pair's σ_i σ_j: the same to 1e-8 (JᵀJ is made at the last accepted
+    # trial, the optimum returned; the transforms' slopes divide out)
+    assert np.allclose(cov[np.ix_(idx, idx)] / np.outer(d, d), ref / np.outer(d, d),
+                       rtol=0, atol=1e-8)
+    others = np.setdiff1d(np.arange(param.size), idx)
+    assert np.all(np.isnan(cov[others])) and np.all(np.isnan(cov[:, others]))
+    assert np.allclose(np.asarray(unc.x), np.asarray(param.physical_vector(u_opt)), rtol=1e-14)
 
 
 def test_source_shape_undoes_the_lens_stretch():

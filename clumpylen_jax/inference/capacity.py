@@ -5,10 +5,10 @@ R_e of the prior (so unlensed stamps hold any clump the fit can reach: a clump g
 beyond its build-time R_e would otherwise be cut by a square stamp). A fit varies a
 Parametrization over every slot; the light of slot i is multiplied by active[i]
 (0 or 1, a traced array), so adding, removing or moving a clump changes arrays only,
-never shapes or static fields: `solve_batch`, `solve_local_batch`, the rendering of a
-state (`likelihood.chi2_and_images`) and the Fisher matrix compile once per (model, data
-layout, capacity, batch size) and are reused
-at every counting step; `solve_local_batch` takes any number of rows moved up to the
+never shapes or static fields: `solve_batch`, `solve_local_batch` and the rendering of a
+state (`likelihood.chi2_and_images`) compile once per (model, data layout, capacity, batch
+size) and are reused at every counting step (the errors come from the final local
+solve's JᵀJ: no Fisher program); `solve_local_batch` takes any number of rows moved up to the
 capacity (padded, `_local_normal`), so the counting steps and the final refit of every
 kept clump share one program. An inactive slot has zero Jacobian columns, and gets a
 zero step.
@@ -36,11 +36,10 @@ import numpy as np
 from ..convolve import fft_shape
 from ..psf import PSF, fwhm_arcsec
 from ..source import Source
-from .likelihood import predicted_images, whitened_residuals
+from .likelihood import whitened_residuals
 from .lm import (band_of_residuals, blockwise, columns_by_kind, held_residuals, linear_groups,
                  levenberg_marquardt)
 from .params import clump_rows, masked_clumps, only_gradient, part_blocks
-from .uncertainty import fisher_for_data
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
@@ -229,7 +228,7 @@ def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_h
                                      chunk, kinds)
     v0 = u.at[idx].get(mode="fill", fill_value=0.0)
     r = levenberg_marquardt(residual, v0, max_steps, rtol, normal=normal)
-    return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps
+    return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps, r.jtj
 
 
 @eqx.filter_jit
@@ -238,28 +237,14 @@ def solve_local_batch(model, data, param, us, idxs, slots, actives, rtol, max_st
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
     step is that of the columns used (host, background and the clumps of the rows slots[s],
     int [S, C·chunk]), not the capacity's. Layout and padding: `_local_normal`; one compiled
-    program for any number of rows up to C·chunk. max_steps as in solve_batch. kinds
-    (static): the layout's per-band linear entries, `_local_normal`."""
+    program for any number of rows up to C·chunk. max_steps as in solve_batch; rtol an array
+    (a Python float would be static: a program per tolerance). kinds (static): the layout's
+    per-band linear entries, `_local_normal`. Returns solve_batch's four and JᵀJ [S, K, K] at
+    each optimum in idxs' order (the Fisher matrix in u of those entries: zero rows and
+    columns at padding), so that errors need no program of their own."""
     return jax.lax.map(lambda a: _solve_local(model, data, param, *a[:4], rtol, a[4], n_host,
                                               chunk, kinds),
                        (us, idxs, slots, actives, _per_start(max_steps, us.shape[0])))  # see solve_batch
-
-
-@eqx.filter_jit
-def fisher_of_rows(model, data, param, u, entries, slots, active):
-    """Fisher matrix [K, K] of the physical entries `entries` (int [K]: host, background and
-    the entries of the clump rows `slots`, int [L]) at u, the other entries held: only those
-    rows are rendered when the model draws any number of clumps (else every slot, masked by
-    active), so its cost is that of the kept clumps, not of the capacity."""
-    x = param.physical_vector(u)
-
-    def model_vector(xs):
-        state = masked_clumps(param.state_from_physical(x.at[entries].set(xs)), active)
-        if model.clumps.any_count:
-            state = clump_rows(state, slots)
-        return jnp.concatenate([img.ravel() for img in predicted_images(model, state)])
-
-    return fisher_for_data(model, model_vector, x[entries], data)
 
 
 def psf_sigma_pixels(model) -> np.ndarray:

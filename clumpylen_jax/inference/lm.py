@@ -8,8 +8,8 @@ Fisher matrix then needs one more compile. Here each step evaluates the residual
 trial point, accepts it if χ² dropped (λ ← λ/3) or keeps the previous point (λ ← 4λ),
 makes the Jacobian only at an accepted point (`jax.jacfwd(..., has_aux=True)`: one trace
 of the model; a rejected trial costs one model evaluation), and proposes the next trial
-from (JᵀJ + λ diag JᵀJ) δ = −Jᵀr. The Jacobian at the optimum is returned, so errors need
-no further compile. benchmarks/bench_optimizers.py measures both.
+from (JᵀJ + λ diag JᵀJ) δ = −Jᵀr. The Jacobian at the optimum and JᵀJ are returned, so errors
+need no further compile. benchmarks/bench_optimizers.py measures both.
 
 Converged (`success`) means one of two things, never "ran out of steps" nor "damping
 maxed out while a Gauss–Newton step would still gain": an accepted step close to
@@ -48,12 +48,14 @@ LAMBDA_MAX = 1e12
 LAMBDA_GN = 1e-12         # damping of the "Gauss–Newton" step of the stuck test (zero columns)
 DECREMENT_TOL = 1e-2      # χ² a Gauss–Newton step may still gain at a converged point
 DAMPING_FLOOR = 1.0       # least diagonal the damping scales with (module doc)
+RTOL = 1e-7               # default convergence: an accepted step gaining < RTOL·χ²
 
 
 class LMResult(eqx.Module):
     u: jnp.ndarray
     chi2: jnp.ndarray
     jacobian: Optional[jnp.ndarray]   # d(whitened residuals)/du at u (None: `normal` given)
+    jtj: jnp.ndarray                  # JᵀJ at u: the Fisher matrix in u (whitened residuals)
     n_steps: jnp.ndarray
     success: jnp.ndarray
 
@@ -206,7 +208,7 @@ def held_residuals(scene_model, data, param, active=None):
     return resid_held
 
 
-def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
+def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
                         r_and_j=None, normal=None) -> LMResult:
     """Minimise |resid(u)|² over u from u0 (module doc). Traceable (under vmap its branch on
     acceptance runs both sides: `capacity.solve_batch` maps starts one after the other).
@@ -252,11 +254,11 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = 1e-7,
                     done=small | stuck, ok=small | (stuck & at_min))
 
     s = jax.lax.while_loop(cond, body, init)
-    return LMResult(s["u"], s["chi2"], s["J"], s["step"], s["ok"])
+    return LMResult(s["u"], s["chi2"], s["J"], s["H"], s["step"], s["ok"])
 
 
 @eqx.filter_jit
-def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = 1e-7) -> LMResult:
+def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = RTOL) -> LMResult:
     """`levenberg_marquardt` of the whitened residuals of `data` over param's u from u0,
     the Jacobian by blocks (host and background; clumps: `blockwise`)."""
     resid_held = held_residuals(scene_model, data, param)
