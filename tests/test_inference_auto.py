@@ -543,7 +543,8 @@ def test_final_shape_starts_round_clumps_from_their_shape_trials():
         for f in ("re_arcsec", "q", "pa_rad", "center_arcsec", "flux"):
             assert np.allclose(getattr(cl, f)[i], getattr(before, f)[i]), (i, f)
     assert ctx.shaped.tolist() == [True, True, True, False]
-    kept = auto._entries(ctx, [0, 1, 2])
+    idx, _ = auto._solve_layout(ctx, [0, 1, 2])
+    kept = idx[idx < ctx.param.size]
     assert set(ctx.shape_index[:3].ravel()) <= set(kept.tolist())
     # a trial that went back to round starts inside the bound
     ctx.shaped[:] = False

@@ -148,12 +148,6 @@ class AutoOptions:
     host: fit a smooth Sérsic host (from the moments, or `host_start`). False: none (an arc
         whose smooth light is the diffuse light alone; a cuspy Sérsic beside it drew the
         brightest clump of a mock arc).
-    final_rtol: the final refit's tolerance (None: rtol). A caller whose answers are that
-        refit's optimum and errors (`observations.run.auto_starts`) counts at a looser rtol
-        and converges the final refit fully.
-    re_min_arcsec: lower bound of clump R_e (None: RE_MIN_FRACTION × the upper bound).
-    host_q_min, host_n_range: bounds of the host's axis ratio and Sérsic index. A caller
-        whose own fit has other bounds passes them, so that the optimum here is its optimum.
     """
 
     max_clumps: int = 20
@@ -175,10 +169,6 @@ class AutoOptions:
     diffuse_spacing_arcsec: Optional[float] = None
     host_re_range_arcsec: Optional[tuple] = None
     host: bool = True
-    final_rtol: Optional[float] = None
-    re_min_arcsec: Optional[float] = None
-    host_q_min: float = CLUMP_Q_RANGE[0]
-    host_n_range: tuple = HOST_N_RANGE
 
     def validate(self) -> "AutoOptions":
         require(isinstance(self.max_clumps, (int, np.integer)) and 1 <= self.max_clumps <= 1000,
@@ -212,19 +202,6 @@ class AutoOptions:
         require(r is None or (len(r) == 2 and np.all(np.isfinite(r)) and 0 < r[0] < r[1]),
                 "fit.host_re_range_arcsec", r, "(lo, hi) arcsec with 0 < lo < hi")
         require(isinstance(self.host, (bool, np.bool_)), "fit.host", self.host, "true or false")
-        require(self.final_rtol is None or (np.isfinite(self.final_rtol)
-                                            and 0 < self.final_rtol < 1),
-                "fit.final_rtol", self.final_rtol, "a relative χ² gain in (0, 1)")
-        hi = self.re_max_arcsec
-        require(self.re_min_arcsec is None or (np.isfinite(self.re_min_arcsec)
-                                               and 0 < self.re_min_arcsec
-                                               and (hi is None or self.re_min_arcsec < hi)),
-                "fit.re_min_arcsec", self.re_min_arcsec, "a radius > 0 arcsec below re_max_arcsec")
-        require(np.isfinite(self.host_q_min) and 0 < self.host_q_min < 1, "fit.host_q_min",
-                self.host_q_min, "an axis ratio in (0, 1)")
-        n = self.host_n_range
-        require(len(n) == 2 and np.all(np.isfinite(n)) and 0 < n[0] < n[1], "fit.host_n_range",
-                n, "(lo, hi) Sérsic indices with 0 < lo < hi")
         return self
 
     @property
@@ -281,8 +258,7 @@ def _with_slots(host: Source, cap: int, nb: int, re_max: float, clump_n: float, 
     return Source(bulge=host.bulge, disk=host.disk, clumps=cl)
 
 
-def _host_free(source: Source, box_lo, box_hi, re_range=None, q_min=CLUMP_Q_RANGE[0],
-               n_range=HOST_N_RANGE):
+def _host_free(source: Source, box_lo, box_hi, re_range=None):
     free = {}
     for name, comp in (("bulge", source.bulge),
                        ("disk.sersic", None if source.disk is None else source.disk.sersic)):
@@ -291,19 +267,19 @@ def _host_free(source: Source, box_lo, box_hi, re_range=None, q_min=CLUMP_Q_RANG
         free[f"{name}.flux"] = True
         free[f"{name}.re_arcsec"] = True if re_range is None else \
             Free(True, Transform("log_bounded", *re_range))
-        free[f"{name}.n"] = Free(True, Transform("bounded", *n_range))
-        free[f"{name}.q"] = Free(True, Transform("bounded", q_min, 1.0))
+        free[f"{name}.n"] = Free(True, Transform("bounded", *HOST_N_RANGE))
+        free[f"{name}.q"] = Free(True, Transform("bounded", *CLUMP_Q_RANGE))
         free[f"{name}.pa_rad"] = True
         free[f"{name}.center_arcsec"] = Free(True, Transform("bounded", box_lo, box_hi))
     return free
 
 
 def _free(source: Source, re_lo, re_hi, box_lo, box_hi, shape_free: bool, background: bool,
-          host_re_range=None, host_q_min=CLUMP_Q_RANGE[0], host_n_range=HOST_N_RANGE):
+          host_re_range=None):
     """Free entries; shape_free: every clump's q and PA in the parametrization (fitted for all
     with fit_shape; for the shape moves, only those of a clump made elliptical); background:
     a level per band (not with a diffuse light, whose span holds it)."""
-    free = _host_free(source, box_lo, box_hi, host_re_range, host_q_min, host_n_range)
+    free = _host_free(source, box_lo, box_hi, host_re_range)
     free.update({"clumps.flux": True,
                  "clumps.center_arcsec": Free(True, Transform("bounded", box_lo, box_hi)),
                  "clumps.re_arcsec": Free(True, Transform("log_bounded", re_lo, re_hi))})
@@ -384,7 +360,7 @@ def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptio
     grids = _probe_grids(make_model, probe_src, data)
     pix = min(g.pixel_arcsec for g in grids)
     re_hi = float(opts.re_max_arcsec or RE_MAX_PIXELS * pix)
-    re_lo = float(opts.re_min_arcsec or RE_MIN_FRACTION * re_hi)
+    re_lo = RE_MIN_FRACTION * re_hi
     moments, sky = seeding.host_from_moments(_GridsOnly(grids), data, variances, masks, lens)
     host = _host_source(host_start, moments, nb, opts.host_re_range_arcsec) if opts.host \
         else Source()
@@ -400,8 +376,7 @@ def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptio
     shape_moves = _shape_moves(model, opts)
     param = parametrize(state, _free(src, re_lo, re_hi, lo, hi, opts.fit_shape or shape_moves,
                                      background=opts.diffuse_spacing_arcsec is None,
-                                     host_re_range=opts.host_re_range_arcsec,
-                                     host_q_min=opts.host_q_min, host_n_range=opts.host_n_range))
+                                     host_re_range=opts.host_re_range_arcsec))
     idata = make_data(model, data, variances, masks, kind="gaussian",
                       diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec)
     k_clump = nb + (5 if opts.fit_shape else 3)
@@ -472,14 +447,6 @@ def _step_limits(ctx: _Ctx, m: int):
                        jnp.int32)
 
 
-def _entries(ctx: _Ctx, slots, shaped=None):
-    """Entries of u a local solve frees: host and background, then each slot's (flux, β, R_e,
-    and its q, PA where shaped[slot], default ctx.shaped): `_solve_layout` without its
-    padding and held entries."""
-    idx, _ = _solve_layout(ctx, slots, shaped)
-    return idx[idx < ctx.param.size]
-
-
 def _solve_layout(ctx: _Ctx, slots, shaped=None):
     """(entries, rows) of a local solve in `capacity.solve_local_batch`'s layout: host and
     background entries, then for each row of `slots`, padded with the row ctx.cap to a
@@ -500,12 +467,12 @@ def _solve_layout(ctx: _Ctx, slots, shaped=None):
 
 
 def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None, held_sets=None,
-               rtol=None, normal=False):
+               normal=False):
     """LM over host, background and the clump slots slot_sets[s] of each start only (their
     q, PA too where shaped_sets[s][slot]; default ctx.shaped): `_solve_layout`. held_sets[s]:
     entries of u held at their start values in start s (same program: marked as padding).
-    rtol: None for ctx.opts.rtol. normal: also return each start's JᵀJ at its optimum
-    [m, K, K] and the entries of u it is over [m, K] (u.size: padding or held)."""
+    normal: also return each start's JᵀJ at its optimum [m, K, K] and the entries of u it
+    is over [m, K] (u.size: padding or held)."""
     s = ctx.opts.n_starts
     us, actives = np.asarray(us), np.asarray(actives, float)
     idxs, slots = (np.stack(a) for a in zip(*(_solve_layout(ctx, sl, shaped) for sl, shaped in
@@ -515,10 +482,9 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None, held_sets=No
     m = us.shape[0]
     pad = np.arange(s) % m
     t0 = time.perf_counter()
-    rtol = ctx.opts.rtol if rtol is None else rtol
     out, lnl, ok, steps, jtj = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), jnp.asarray(rtol, us.dtype),
+        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), jnp.asarray(ctx.opts.rtol, us.dtype),
         _step_limits(ctx, m), int(ctx.host_index.size), LOCAL_SLOTS, _layout_kinds(ctx))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
@@ -1009,17 +975,16 @@ def _final(ctx: _Ctx, u, active, steps):
     Over the host, background and the kept clumps' entries only (`_fit_local`): an inactive
     slot's Jacobian columns are zero and its step is zero, so leaving them out gives the
     same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
-    The program is the counting steps' (`_solve_layout`): no compile here. To
-    `AutoOptions.final_rtol`. Returns (us, lnls, oks, b: the best start, its JᵀJ at its
-    optimum and the entries of u that is over: `_uncertainty`)."""
+    The program is the counting steps' (`_solve_layout`): no compile here. Returns (us,
+    lnls, oks, b: the best start, its JᵀJ at its optimum and the entries of u that is over:
+    `_uncertainty`)."""
     rng = np.random.default_rng(ctx.opts.seed)
     s = ctx.opts.n_starts if ctx.opts.final_starts is None else ctx.opts.final_starts
     eps = rng.normal(0.0, 0.1, (s, u.size))
     eps[0] = 0.0
     kept = [int(i) for i in np.nonzero(active > 0)[0]]
-    rtol = ctx.opts.rtol if ctx.opts.final_rtol is None else ctx.opts.final_rtol
     us, lnls, oks, n, jtj, idxs = _fit_local(ctx, u[None] + eps, [kept] * s,
-                                             np.tile(active, (s, 1)), rtol=rtol, normal=True)
+                                             np.tile(active, (s, 1)), normal=True)
     b = int(np.argmax(lnls))
     steps.append(dict(step=len(steps), action="final", slot=-1, n_clumps=int(active.sum()),
                       delta_lnL=np.nan, criterion=np.nan, accepted=True, lnL=float(lnls[b]),
@@ -1246,11 +1211,11 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
     u, lnl, ok = us[b], float(lnls[b]), bool(oks[b])
     state = masked_state(ctx.param, u, active)
     idx = np.nonzero(active > 0)[0]
-    unc = _uncertainty(ctx, u, jtj, entries)
     if not opts.errors:
-        return AutoFit(_compact(state, idx), ctx.param, unc, None, steps, ctx.model, u, active,
+        return AutoFit(_compact(state, idx), ctx.param, None, None, steps, ctx.model, u, active,
                        lnl, ok)
     spread = _spread(ctx, us, lnls, active)
+    unc = _uncertainty(ctx, u, jtj, entries)
     prof = (_profile(ctx, u, lnl, active)
             if opts.profile_errors and ctx.shape_index is not None else None)
     if prof:

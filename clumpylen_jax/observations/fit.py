@@ -14,18 +14,13 @@
    host-only fit in a 5 × 5-pixel box. When `clump_starts` carries a fitted "host"
    (and "flux", "background": the auto fit's optimum) the joint fit starts there and
    the host-only stage is skipped; its "render" (model, clump capacity) then draws the
-   final images with a program compiled already (`_chi2`). Its final refit ran within
-   this module's bounds to the joint fit's tolerance, every parameter free: where its
-   errors ("uncertainty") cover exactly the joint fit's parameters (and no noise model
-   asks for a refit with σ² from the model), that refit is the joint fit
-   (`_auto_answers`) and no program of its own is compiled.
+   final images with a program compiled already (`_chi2`).
 3. stage "host": host + background by Levenberg–Marquardt (lm.py); stage "joint":
    host, clumps (flux per band, centre, R_e [, q, PA]) and background together. With
    a noise model, σ² = rms² + μ/t is refreshed from the model and the joint fit
    rerun once.
 4. errors: the Fisher matrix in physical parameters at the optimum, from the
-   solver's last Jacobian, or the automatic stage's final refit's JᵀJ (no further
-   compile either way).
+   solver's last Jacobian (no further compile).
 
 Clump fluxes are linear (identity transform: they may go negative, so a band
 where a clump is not detected gives an unbiased flux and an honest upper limit);
@@ -266,27 +261,6 @@ def _uncertainty_from_jacobian(param, u, jac):
     return Uncertainty(param.labels, *_covariance_from_jacobian(param, u, jac))
 
 
-def _auto_answers(param, auto_unc, slots):
-    """(x, cov) over param's labels from the automatic stage's final refit (its Uncertainty
-    over the capacity's labels; compact clump j was its slot slots[j]), or None unless that
-    refit freed exactly these parameters (each with a finite error there, nothing more)."""
-    pos = {label: i for i, label in enumerate(auto_unc.labels)}
-    take = []
-    for label in param.labels:
-        path, rest = label.split("[", 1)
-        if path.startswith("clumps."):
-            j, *more = rest.rstrip("]").split(",")
-            label = f"{path}[{','.join([str(int(slots[int(j)]))] + more)}]"
-        if label not in pos:
-            return None
-        take.append(pos[label])
-    cov = np.asarray(auto_unc.cov)
-    if int(np.sum(np.isfinite(np.diag(cov)))) != len(take):
-        return None
-    cov = cov[np.ix_(take, take)]
-    return (np.asarray(auto_unc.x)[take], cov) if np.all(np.isfinite(cov)) else None
-
-
 def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
               max_steps=200, solver="lm", diffuse_spacing_arcsec=None, render=None):
     """One fit; appends a record to `steps`; returns (result, param, data, μ).
@@ -330,37 +304,9 @@ def _clump_fluxes(observations, frame, centers, mu):
     return out
 
 
-def _joint_as_auto(model, observations, source, free, background, auto, steps,
-                   diffuse_spacing_arcsec, render):
-    """`run_stage`'s result for the joint fit from the automatic stage's final refit (its
-    optimum is `source`, its errors auto["uncertainty"]), or None where that refit did not
-    free exactly the joint fit's parameters (`_auto_answers`)."""
-    from ..inference.uncertainty import Uncertainty
-    t0, c0 = time.perf_counter(), time.process_time()
-    data = _data(model, observations, None, diffuse_spacing_arcsec)
-    state0 = make_state(source, len(observations), background_counts_per_s=background)
-    param = parametrize(state0, free)
-    answers = _auto_answers(param, auto["uncertainty"], auto["slots"])
-    if answers is None:
-        return None
-    unc = Uncertainty(param.labels, jnp.asarray(answers[0]), jnp.asarray(answers[1]))
-    res = _StageResult(param.state(param.initial()), unc.x, unc)
-    chi2, mu = _chi2(model, data, res.state, render)
-    final = auto["final"]
-    steps.append(dict(stage="joint", solver="lm (the automatic stage's final refit)",
-                      n_steps=int(final["n_steps"]), success=bool(final["converged"]),
-                      chi2=float(sum(chi2)), seconds=round(time.perf_counter() - t0, 3),
-                      cpu_seconds=round(time.process_time() - c0, 3)))
-    return res, param, data, mu
-
-
-def fit_observations(observations, frame, options, clump_starts=None, *, solver="lm",
-                     refit=False) -> ObservedFit:
+def fit_observations(observations, frame, options, clump_starts=None, *, solver="lm") -> ObservedFit:
     """Fit host + clumps to the observations (see the module doc). clump_starts: dict with
-    "phi" [N, 2] (fit-frame arcsec) and optional "re_arcsec" [N], or None for none; from
-    the automatic stage also its optimum and errors (`run.auto_starts`). refit: run the
-    joint fit even where the automatic stage's final refit is that fit (`_auto_answers`;
-    the tests compare the two)."""
+    "phi" [N, 2] (fit-frame arcsec) and optional "re_arcsec" [N], or None for none."""
     t_start, c_start = time.perf_counter(), time.process_time()
     timings, steps = {}, []
     make_model = make_model_factory(observations, frame, options)
@@ -395,12 +341,7 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
         re0 = np.asarray(clump_starts.get("re_arcsec", np.full(n, np.nan)), float)
         pix = min(g.pixel_arcsec for g in frame.grids)
         re0 = np.where(np.isfinite(re0), re0, pix)
-        # strictly inside the bounds (a bounded transform has no inverse on its edge); a
-        # start of the LM 1 % inside, where the transform's slope is not yet vanishing; the
-        # automatic stage's optimum, found within these bounds, as it is
-        margin = 1e-9 if warm else 0.01
-        re0 = np.clip(re0, options.clump_re_min_arcsec * (1 + margin),
-                      options.clump_re_max_arcsec * (1 - margin))
+        re0 = np.clip(re0, options.clump_re_min_arcsec * 1.01, options.clump_re_max_arcsec * 0.99)
         flux0 = (np.asarray(clump_starts["flux"], float).reshape(n, nb)
                  if clump_starts.get("flux") is not None else _clump_fluxes(observations, frame, phi, mu))
         src = Source(bulge=host, clumps=_clumps(phi, flux0, re0, options))
@@ -413,19 +354,11 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
     noise_model = any(ob.noise_exptime_s is not None for ob in observations)
     # the automatic stage's model and capacity: its compiled images program draws the result
     render = clump_starts.get("render") if warm else None
-    done = None
-    if warm and n and solver == "lm" and not noise_model and not refit and \
-            clump_starts.get("uncertainty") is not None and np.array_equal(
-                re0, np.asarray(clump_starts.get("re_arcsec", re0), float)):
-        done = _joint_as_auto(model, observations, src, free, bg, clump_starts, steps,
-                              options.diffuse_spacing_arcsec, render)
-    if done is not None:
-        res, param, data, mu_new = done
-    else:
-        res, param, data, mu_new = run_stage(
-            "joint", model, observations, src, free, steps, mu=mu if noise_model else None,
-            background=bg, max_steps=options.max_steps, solver=solver,
-            diffuse_spacing_arcsec=options.diffuse_spacing_arcsec, render=render)
+    res, param, data, mu_new = run_stage("joint", model, observations, src, free, steps,
+                                         mu=mu if noise_model else None, background=bg,
+                                         max_steps=options.max_steps, solver=solver,
+                                         diffuse_spacing_arcsec=options.diffuse_spacing_arcsec,
+                                         render=render)
     if noise_model:   # σ² from the fitted model, then once more
         res, param, data, mu_new = run_stage(
             "joint (variance from model)", model, observations, res.state.source, free, steps,

@@ -80,20 +80,16 @@ def auto_starts(observations, frame, scene):
     import dataclasses
 
     from ..inference.auto import AutoOptions, fit_without_truth
-    from ..inference.lm import RTOL
-    from .fit import HOST_N, HOST_Q_MIN, host_re_bounds, make_model_factory
+    from .fit import host_re_bounds, make_model_factory
     opts = scene.fit
     if opts.max_clumps == 0:
         return None, []
     # no Fisher errors there: only the optimum is used, the joint fit below gives the errors;
     # no merge or shape moves: the joint fit starts round clumps (q, PA not passed on), and
     # the moves are measured on the simulated recovery scenes only (issue 18)
-    # the counting at a looser tolerance (AUTO_RTOL), its final refit of every parameter to
-    # the joint fit's (lm.RTOL) within the joint fit's bounds: that refit is then the joint
-    # fit (`fit._auto_answers`); one final start, unperturbed (`AutoOptions.final_starts`)
+    # a looser tolerance (AUTO_RTOL): the joint fit refits every parameter from this optimum;
+    # and for the same reason one final start, unperturbed (`AutoOptions.final_starts`)
     wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
-                  re_min_arcsec=opts.clump_re_min_arcsec, host_q_min=HOST_Q_MIN,
-                  host_n_range=HOST_N, final_rtol=RTOL,
                   clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps, errors=False,
                   final_starts=1,
                   merge=False, rtol=AUTO_RTOL, diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec,
@@ -118,9 +114,7 @@ def auto_starts(observations, frame, scene):
     return {"phi": np.asarray(cl.center_arcsec, float), "re_arcsec": np.asarray(cl.re_arcsec, float),
             "flux": np.asarray(cl.flux, float), "host": auto.state.source.bulge,
             "background": np.asarray(auto.state.background_counts_per_s, float),
-            "render": (auto.model, int(auto.param.template.source.clumps.count)),
-            "uncertainty": auto.uncertainty, "slots": np.nonzero(auto.active > 0)[0],
-            "final": next(s for s in reversed(auto.steps) if s["action"] == "final")}, auto.steps
+            "render": (auto.model, int(auto.param.template.source.clumps.count))}, auto.steps
 
 
 def fit_observation_scene(scene, out_dir=None, *, progress=None):
