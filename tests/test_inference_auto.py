@@ -408,7 +408,7 @@ def test_final_refit_errors_are_the_full_models_fisher():
     idx = np.r_[param.size - 1, np.ravel([[i, 4 + 2 * i, 5 + 2 * i, 12 + i] for i in kept])]
     out, _, ok, n, jtj = capacity.solve_local_batch(
         model, data, param, (u + 0.05)[None], jnp.asarray(idx[None]), jnp.asarray(kept[None]),
-        active[None], jnp.asarray(1e-10), jnp.asarray([50]), 1, 3)
+        active[None], 1e-10, jnp.asarray([50]), 1, 3)
     assert bool(ok[0]) and int(n[0]) > 1
     u_opt = jnp.asarray(out[0])
     unc = auto._uncertainty(types.SimpleNamespace(param=param), u_opt, jtj[0], idx)

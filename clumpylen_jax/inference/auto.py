@@ -484,8 +484,8 @@ def _fit_local(ctx: _Ctx, us, slot_sets, actives, shaped_sets=None, held_sets=No
     t0 = time.perf_counter()
     out, lnl, ok, steps, jtj = capacity.solve_local_batch(
         ctx.model, ctx.data, ctx.param, jnp.asarray(us[pad]), jnp.asarray(idxs[pad]),
-        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), jnp.asarray(ctx.opts.rtol, us.dtype),
-        _step_limits(ctx, m), int(ctx.host_index.size), LOCAL_SLOTS, _layout_kinds(ctx))
+        jnp.asarray(slots[pad]), jnp.asarray(actives[pad]), ctx.opts.rtol, _step_limits(ctx, m),
+        int(ctx.host_index.size), LOCAL_SLOTS, _layout_kinds(ctx))
     lnl = np.where(np.isfinite(np.asarray(lnl)), np.asarray(lnl), -np.inf)
     LOG.info("local fit of %d start(s), %d clump(s): %.2f s, ln L %s, steps %s", m,
              int(actives[0].sum()), time.perf_counter() - t0, np.round(lnl[:m], 1),

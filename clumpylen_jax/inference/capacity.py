@@ -237,11 +237,10 @@ def solve_local_batch(model, data, param, us, idxs, slots, actives, rtol, max_st
     """`solve_batch` over the entries idxs[s] (int [S, K]) of each start only: the cost of a
     step is that of the columns used (host, background and the clumps of the rows slots[s],
     int [S, C·chunk]), not the capacity's. Layout and padding: `_local_normal`; one compiled
-    program for any number of rows up to C·chunk. max_steps as in solve_batch; rtol an array
-    (a Python float would be static: a program per tolerance). kinds (static): the layout's
-    per-band linear entries, `_local_normal`. Returns solve_batch's four and JᵀJ [S, K, K] at
-    each optimum in idxs' order (the Fisher matrix in u of those entries: zero rows and
-    columns at padding), so that errors need no program of their own."""
+    program for any number of rows up to C·chunk. max_steps as in solve_batch. kinds
+    (static): the layout's per-band linear entries, `_local_normal`. Returns solve_batch's
+    four and JᵀJ [S, K, K] at each optimum in idxs' order (the Fisher matrix in u of those
+    entries: zero rows and columns at padding), so that errors need no program of their own."""
     return jax.lax.map(lambda a: _solve_local(model, data, param, *a[:4], rtol, a[4], n_host,
                                               chunk, kinds),
                        (us, idxs, slots, actives, _per_start(max_steps, us.shape[0])))  # see solve_batch
