@@ -169,6 +169,29 @@ def test_start_size_does_not_change_the_optimum():
     assert abs(x[0] / x[1] - 1) < 1e-4 and abs(lnl[0] - lnl[1]) < 1e-3
 
 
+def test_final_refit_caps_the_perturbed_starts(monkeypatch):
+    """`auto._final`: the unperturbed start runs first, the perturbed ones get at most
+    FINAL_STEP_FACTOR times its LM steps (at least FINAL_MIN_STEPS), and the start kept is
+    the best, converged (one that beat the unperturbed start unconverged is carried on).
+    Here the cap is set to the unperturbed start's own steps (6), so that it binds: a
+    perturbed start takes 9 uncapped."""
+    monkeypatch.setattr(auto, "FINAL_STEP_FACTOR", 1)
+    monkeypatch.setattr(auto, "FINAL_MIN_STEPS", 1)
+    data, var = _observe(Source(clumps=CLUMPS), 4)
+    opts = AutoOptions(max_clumps=3, n_starts=3, host=False).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    for slot, c in enumerate(CENTERS):
+        u = auto._set_clump(ctx, u, slot, c + 0.01, [2.5], 0.03)
+    steps = []
+    us, lnls, oks, b, jtj, idx = auto._final(ctx, u, np.ones(3), steps)
+    n = steps[-1]["starts_n_steps"]
+    assert len(n) == len(lnls) == 3 and steps[-1]["n_steps"] == n[b]
+    capped = [k for i, k in enumerate(n[1:], 1) if i != b]
+    assert capped and max(capped) == n[0], (n, b)     # the cap reached, never passed
+    assert b == int(np.argmax(lnls)) and oks[b]
+    assert np.all(np.isfinite(jtj)) and jtj.shape == (idx.size, idx.size)
+
+
 def test_lm_reports_success_only_at_a_minimum():
     """inference/lm.py, the one Levenberg–Marquardt: a linear least-squares problem is solved
     exactly and reported converged; cut short (2 steps) it is not; and a point where every
