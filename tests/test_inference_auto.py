@@ -174,7 +174,8 @@ def test_final_refit_caps_the_perturbed_starts(monkeypatch):
     FINAL_STEP_FACTOR times its LM steps (at least FINAL_MIN_STEPS), and the start kept is
     the best, converged (one that beat the unperturbed start unconverged is carried on).
     Here the cap is set to the unperturbed start's own steps (6), so that it binds: a
-    perturbed start takes 9 uncapped."""
+    perturbed start takes 9 uncapped. The clumps start 0.01" off the true centres: the
+    point is the cap's mechanics, not finding them."""
     monkeypatch.setattr(auto, "FINAL_STEP_FACTOR", 1)
     monkeypatch.setattr(auto, "FINAL_MIN_STEPS", 1)
     data, var = _observe(Source(clumps=CLUMPS), 4)
@@ -418,7 +419,9 @@ def test_local_normal_equations_with_a_host():
 def test_final_refit_errors_are_the_full_models_fisher():
     """`auto._uncertainty` from a local solve's JᵀJ at its optimum (the final refit's: no
     program of its own) is the inverse of the kept block of the Fisher matrix of every slot
-    with the active mask, in physical parameters; entries outside the solve are NaN."""
+    with the active mask, in physical parameters; entries outside the solve are NaN. The
+    data are the noiseless image of u and the solve starts 0.05 off it in every entry: the
+    point is the errors at the optimum, not reaching it."""
     import types
 
     from clumpylen_jax.inference import capacity

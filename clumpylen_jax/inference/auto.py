@@ -1004,10 +1004,10 @@ def _final(ctx: _Ctx, u, active, steps):
     us, lnls, oks, n, jtj, idxs = (np.array(a) for a in res)
     b = int(np.argmax(lnls))
     if b > 0 and not oks[b]:
-        more = fit(us[b][None])
-        for a, v in zip((us, lnls, oks, jtj, idxs), (more[0], more[1], more[2], more[4], more[5])):
+        capped_steps = n[b]
+        for a, v in zip((us, lnls, oks, n, jtj, idxs), fit(us[b][None])):
             a[b] = v[0]
-        n[b] += more[3][0]
+        n[b] += capped_steps
         b = int(np.argmax(lnls))
     steps.append(dict(step=len(steps), action="final", slot=-1, n_clumps=int(active.sum()),
                       delta_lnL=np.nan, criterion=np.nan, accepted=True, lnL=float(lnls[b]),
