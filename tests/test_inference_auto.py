@@ -173,11 +173,13 @@ def test_final_refit_caps_the_perturbed_starts(monkeypatch):
     """`auto._final`: the unperturbed start runs first, the perturbed ones get at most
     FINAL_STEP_FACTOR times its LM steps (at least FINAL_MIN_STEPS), and the start kept is
     the best, converged (one that beat the unperturbed start unconverged is carried on).
-    Here the cap is set to the unperturbed start's own steps (6), so that it binds: a
-    perturbed start takes 9 uncapped. The clumps start 0.01" off the true centres: the
-    point is the cap's mechanics, not finding them."""
+    Here the cap is set to the unperturbed start's own steps (6), and the perturbed starts
+    are thrown 0.1 off in every entry (FINAL_START_SIGMA made huge, the clip binding), so
+    that it binds: such a start takes 9 steps uncapped. The clumps start 0.01" off the true
+    centres: the point is the cap's mechanics, not finding them."""
     monkeypatch.setattr(auto, "FINAL_STEP_FACTOR", 1)
     monkeypatch.setattr(auto, "FINAL_MIN_STEPS", 1)
+    monkeypatch.setattr(auto, "FINAL_START_SIGMA", 1e6)
     data, var = _observe(Source(clumps=CLUMPS), 4)
     opts = AutoOptions(max_clumps=3, n_starts=3, host=False).validate()
     ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
@@ -191,6 +193,46 @@ def test_final_refit_caps_the_perturbed_starts(monkeypatch):
     assert capped and max(capped) == n[0], (n, b)     # the cap reached, never passed
     assert b == int(np.argmax(lnls)) and oks[b]
     assert np.all(np.isfinite(jtj)) and jtj.shape == (idx.size, idx.size)
+
+
+def test_final_starts_probe_the_optimums_basin():
+    """`auto._final` with its defaults: the perturbed starts, drawn within 3σ of the
+    unperturbed optimum (its JᵀJ), all come back within Δln L 2 of the best, so the table's
+    spread (starts within Δln L 2) is over every start, not the best alone, and each takes
+    no more LM steps than the unperturbed start (here 5, 5 against 6; thrown 0.1 off in every
+    entry, as before, 7 each). The clumps start 0.01" off the true centres: the point is the
+    starts about the optimum, not finding it."""
+    data, var = _observe(Source(clumps=CLUMPS), 4)
+    opts = AutoOptions(max_clumps=3, n_starts=3, host=False).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    for slot, c in enumerate(CENTERS):
+        u = auto._set_clump(ctx, u, slot, c + 0.01, [2.5], 0.03)
+    steps = []
+    us, lnls, oks, b, jtj, idx = auto._final(ctx, u, np.ones(3), steps)
+    assert len(lnls) == 3 and np.all(oks)
+    assert np.all(lnls >= lnls.max() - 2.0), lnls
+    n = steps[-1]["starts_n_steps"]
+    assert max(n[1:]) <= n[0], n
+    assert np.ptp(us[:, idx[idx < u.size]], axis=0).max() > 0     # they did start elsewhere
+
+
+def test_final_start_offsets_follow_the_fisher_covariance():
+    """`auto._start_offsets`: N(0, 9 Cov_u) over the fitted entries (Cov_u = (JᵀJ)⁻¹), zero on
+    the others and on padding; an entry the data do not constrain (JᵀJ ~ 0 there) is clipped
+    to ±FINAL_START_MAX_U instead of thrown to its huge variance."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(6, 3))
+    jtj = np.zeros((5, 5))
+    jtj[:3, :3] = a.T @ a * 1e4                       # σ ~ 0.01: well inside the clip
+    jtj[3, 3] = 1e-30                                 # unconstrained
+    idx = np.array([4, 0, 2, 6, 7])                   # entry 7 = size: padding
+    off = auto._start_offsets(jtj, idx, 7, 20000, rng)
+    assert off.shape == (20000, 7)
+    assert np.all(off[:, [1, 3, 5]] == 0.0)
+    want = auto.FINAL_START_SIGMA ** 2 * np.linalg.inv(jtj[:3, :3])
+    got = np.cov(off[:, [4, 0, 2]].T)
+    np.testing.assert_allclose(got, want, rtol=0.05, atol=0.05 * np.abs(want).max())
+    assert np.abs(off[:, 6]).max() == pytest.approx(auto.FINAL_START_MAX_U)
 
 
 def test_lm_reports_success_only_at_a_minimum():

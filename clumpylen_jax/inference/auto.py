@@ -19,8 +19,9 @@
    pair of clumps closer than MERGE_SEPARATION (R_e,i + R_e,j) is tried as one clump (flux
    summed, centre flux-weighted, ellipse from the pair's second moment) and each round
    clump as an elliptical one (where the renderer draws q and PA); the criterion decides.
-   Then the final configuration is refitted from `n_starts` perturbed starts (best kept,
-   spread reported), where shape moves are made with every kept clump's q and PA free
+   Then the final configuration is refitted from the counting's optimum, and from
+   `n_starts` − 1 starts drawn within 3σ of the optimum that refit finds (best kept, spread
+   reported: `_final`), where shape moves are made with every kept clump's q and PA free
    (`AutoOptions.final_shape`).
 4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
    `flag` (0 = fine; bits in `FLAGS`) and blend columns.
@@ -44,7 +45,6 @@ import time
 from typing import Optional
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -57,7 +57,7 @@ from .likelihood import chi2_and_images, make_data
 from .params import (Free, FitState, Parametrization, entry_kinds, make_state, parametrize,
                      take_rows)
 from .transforms import Transform
-from .uncertainty import Uncertainty, safe_inverse
+from .uncertainty import Uncertainty, covariance_from_fisher_u
 
 CRITERIA = ("bic", "lr")
 DEFAULT_THRESHOLD = {"bic": 0.0, "lr": 36.0}
@@ -73,6 +73,13 @@ HOST_N_RANGE = (0.3, 6.0)
 # ended 488–908 lower in ln L (benchmarks/README.md)
 FINAL_STEP_FACTOR = 2
 FINAL_MIN_STEPS = 10
+# the perturbed starts are drawn from N(u*, FINAL_START_SIGMA² Cov_u) about the unperturbed
+# optimum u* (Cov_u from its JᵀJ: they probe its basin at the scale of its errors), each entry
+# clipped to ±FINAL_START_MAX_U (a direction the data do not constrain has a huge variance).
+# Perturbed by 0.1 in every entry instead, none came within Δln L 2 of it in a SIS mock
+# (488–908 below), so the table's spread held one start only
+FINAL_START_SIGMA = 3.0
+FINAL_START_MAX_U = 0.1
 LOG = logging.getLogger(__name__)
 # the `flag` bits of fit.ecsv, for mock-image and observation fits alike; "size_unresolved":
 # σ(R_e) > R_e, the data do not measure the size (a clump far below the PSF): R_e is then at
@@ -100,6 +107,10 @@ ALTERNATIVE_SIGMA = 2.0
 PROFILE_TRIALS = ((1.15, "minor"), (1.15, "open"), (0.87, "minor"), (1.15, "turned"),
                   (1.35, "turned"))
 PROFILE_FLAG_RATIO = 2.0
+# LM steps of each profile refit: any point with R_e held gives `profile_sigma` a valid bound
+# (ln L there is at most the profile's), converged or not, and a batch of refits runs as long
+# as its slowest; in a SIS mock they took 4–45 steps, most under 16
+PROFILE_MAX_STEPS = 15
 
 
 @dataclasses.dataclass(frozen=True)
@@ -983,14 +994,12 @@ def _final(ctx: _Ctx, u, active, steps):
     slot's Jacobian columns are zero and its step is zero, so leaving them out gives the
     same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
     The program is the counting steps' (`_solve_layout`): no compile here. The unperturbed
-    start first; the perturbed ones then get at most FINAL_STEP_FACTOR times its steps, and
+    start first; the perturbed ones start about its optimum (`_start_offsets`: within
+    FINAL_START_SIGMA σ of it) and get at most FINAL_STEP_FACTOR times its steps, and
     one that ends above it (unconverged) is carried on to convergence. Returns (us, lnls,
     oks, b: the best start, its JᵀJ at its optimum and the entries of u that is over:
     `_uncertainty`)."""
-    rng = np.random.default_rng(ctx.opts.seed)
     s = ctx.opts.n_starts if ctx.opts.final_starts is None else ctx.opts.final_starts
-    eps = rng.normal(0.0, 0.1, (s, u.size))
-    eps[0] = 0.0
     kept = [int(i) for i in np.nonzero(active > 0)[0]]
 
     def fit(u0s, max_steps=None):
@@ -1000,7 +1009,9 @@ def _final(ctx: _Ctx, u, active, steps):
     if s > 1:
         cap = min(int(ctx.opts.max_steps),
                   max(FINAL_STEP_FACTOR * int(res[3][0]), FINAL_MIN_STEPS))
-        res = tuple(np.concatenate(ab) for ab in zip(res, fit(u[None] + eps[1:], cap)))
+        starts = res[0][0] + _start_offsets(res[4][0], res[5][0], u.size, s - 1,
+                                            np.random.default_rng(ctx.opts.seed))
+        res = tuple(np.concatenate(ab) for ab in zip(res, fit(starts, cap)))
     us, lnls, oks, n, jtj, idxs = (np.array(a) for a in res)
     b = int(np.argmax(lnls))
     if b > 0 and not oks[b]:
@@ -1015,6 +1026,22 @@ def _final(ctx: _Ctx, u, active, steps):
                       n_steps=int(n[b]), starts_lnL=[float(v) for v in lnls],
                       starts_n_steps=[int(v) for v in n]))
     return us, lnls, oks, b, jtj[b], idxs[b]
+
+
+def _start_offsets(jtj, idx, size: int, n: int, rng):
+    """[n, size] offsets in u of the perturbed final starts: N(0, FINAL_START_SIGMA² Cov_u)
+    over the fitted entries idx (u.size marks padding), Cov_u the inverse of their JᵀJ at the
+    optimum (`safe_inverse`: unconstrained directions get huge variances, hence the clip to
+    ±FINAL_START_MAX_U); 0 elsewhere."""
+    idx = np.asarray(idx)
+    keep = idx < size
+    cov = np.asarray(covariance_from_fisher_u(jnp.asarray(np.asarray(jtj)[np.ix_(keep, keep)]),
+                                              jnp.ones(int(keep.sum()))))
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    draw = (v * np.sqrt(np.clip(w, 0.0, None))) @ rng.normal(size=(int(keep.sum()), n))
+    out = np.zeros((n, size))
+    out[:, idx[keep]] = np.clip(FINAL_START_SIGMA * draw.T, -FINAL_START_MAX_U, FINAL_START_MAX_U)
+    return out
 
 
 def _spread(ctx: _Ctx, us, lnls, active):
@@ -1039,11 +1066,9 @@ def _uncertainty(ctx: _Ctx, u, jtj, idx):
     keep = np.asarray(idx) < ctx.param.size
     entries = np.asarray(idx)[keep]
     x, dxdu = (np.asarray(a) for a in ctx.param.physical_and_slope(jnp.asarray(u)))
-    d = dxdu[entries]
-    d = np.where(d != 0, d, np.finfo(float).tiny)
-    fisher = np.asarray(jtj)[np.ix_(keep, keep)] / np.outer(d, d)
     cov = np.full((x.size, x.size), np.nan)
-    cov[np.ix_(entries, entries)] = np.asarray(jax.jit(safe_inverse)(jnp.asarray(fisher)))
+    cov[np.ix_(entries, entries)] = np.asarray(covariance_from_fisher_u(
+        jnp.asarray(np.asarray(jtj)[np.ix_(keep, keep)]), jnp.asarray(dxdu[entries])))
     return Uncertainty(ctx.param.labels, jnp.asarray(x), jnp.asarray(cov))
 
 
@@ -1109,7 +1134,8 @@ def _profile(ctx: _Ctx, u, lnl, active):
         batch = jobs[k:k + ctx.opts.n_starts]
         us, lnls, _, _ = _fit_local(ctx, np.stack([b[1] for b in batch]), [b[2] for b in batch],
                                     np.tile(active, (len(batch), 1)), None,
-                                    [[re_entry[b[0]]] for b in batch])
+                                    [[re_entry[b[0]]] for b in batch],
+                                    max_steps=min(int(ctx.opts.max_steps), PROFILE_MAX_STEPS))
         for (i, _, _), ut, lt in zip(batch, us, lnls):
             ct = ctx.param.state(jnp.asarray(ut)).source.clumps
             d_re, d_flux, d_lnl = out.setdefault(i, ([], [], []))

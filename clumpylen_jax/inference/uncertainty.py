@@ -70,6 +70,17 @@ def safe_inverse(matrix, rcond: float = 1e-12):
     return ((v / w[None, :]) @ v.T) / jnp.outer(d, d)
 
 
+@jax.jit
+def covariance_from_fisher_u(fisher_u, dxdu):
+    """Covariance of the physical x from the Fisher matrix in the unconstrained u (JᵀJ of the
+    whitened residuals' Jacobian in u) and the transforms' slopes dx/du, all elementwise:
+    F_x = D⁻¹ F_u D⁻¹ with D = diag(dx/du), inverted by `safe_inverse`. A zero slope (a
+    transform's saturated end) is taken as the smallest float: that entry's variance then
+    becomes huge, not NaN. One program (op by op, a dozen one-op compiles)."""
+    d = jnp.where(dxdu != 0, dxdu, jnp.finfo(dxdu.dtype).tiny)
+    return safe_inverse(fisher_u / jnp.outer(d, d))
+
+
 def _model_vector(scene_model, param, x, active=None):
     state = param.state_from_physical(x)
     if active is not None:

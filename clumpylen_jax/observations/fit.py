@@ -42,7 +42,7 @@ from ..inference.likelihood import chi2_and_images, make_data
 from ..inference.optimize import fit_map
 from ..inference.params import Free, make_state, parametrize, take_rows
 from ..inference.transforms import IDENTITY, LOG, Transform
-from ..inference.uncertainty import fisher_uncertainty
+from ..inference.uncertainty import Uncertainty, covariance_from_fisher_u, fisher_uncertainty
 from ..model import Accuracy, Band, build_model
 from ..source import Clumps, Sersic, Source
 from ..inference.auto import fit_clump_pixels
@@ -244,21 +244,11 @@ class _StageResult(eqx.Module):
     uncertainty: object
 
 
-@eqx.filter_jit
-def _covariance_from_jacobian(param, u, jac):
-    """(x, Fisher covariance in physical x) from the whitened-residual Jacobian in u (dx/du is
-    diagonal: every transform is elementwise); compiled as one program (op by op, a dozen
-    one-op compiles)."""
-    from ..inference.uncertainty import safe_inverse
-    x, dxdu = param.physical_and_slope(u)
-    jx = jac / jnp.where(dxdu != 0, dxdu, jnp.finfo(u.dtype).tiny)
-    return x, safe_inverse(jx.T @ jx)
-
-
 def _uncertainty_from_jacobian(param, u, jac):
-    """`Uncertainty` of the physical free parameters at u (`_covariance_from_jacobian`)."""
-    from ..inference.uncertainty import Uncertainty
-    return Uncertainty(param.labels, *_covariance_from_jacobian(param, u, jac))
+    """`Uncertainty` of the physical free parameters at u from the whitened residuals'
+    Jacobian in u there (`uncertainty.covariance_from_fisher_u`)."""
+    x, dxdu = param.physical_and_slope(u)
+    return Uncertainty(param.labels, x, covariance_from_fisher_u(jac.T @ jac, dxdu))
 
 
 def run_stage(name, model, observations, source, free, steps, *, mu=None, background=None,
