@@ -298,7 +298,7 @@ def sed_fit(flux_ujy, cov_ujy, filters, z, sps_options=None, cosmology=(70.0, 0.
     C = np.asarray(cov_ujy, float)
     if C.ndim == 2:                                       # σ per band: independent bands
         C = C[:, :, None] ** 2 * np.eye(F.shape[1])
-    C = C + np.apply_along_axis(np.diag, 1, (CALIBRATION_FLOOR * np.clip(F, 0, None)) ** 2)
+    C = C + ((CALIBRATION_FLOOR * np.clip(F, 0, None)) ** 2)[:, :, None] * np.eye(F.shape[1])
     out = {k: np.full(F.shape[0], np.nan) for k in
            ("mass_msun", "mass_msun_err", "age_myr", "age_myr_err")}
     for i in range(F.shape[0]):
