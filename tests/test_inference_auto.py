@@ -169,6 +169,18 @@ def test_start_size_does_not_change_the_optimum():
     assert abs(x[0] / x[1] - 1) < 1e-4 and abs(lnl[0] - lnl[1]) < 1e-3
 
 
+def _final_near_truth():
+    """`auto._final` (3 starts) of the three clumps started 0.01" off their true centres:
+    (us, lnls, oks, best, JᵀJ, entries, steps)."""
+    data, var = _observe(Source(clumps=CLUMPS), 4)
+    opts = AutoOptions(max_clumps=3, n_starts=3, host=False).validate()
+    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
+    for slot, c in enumerate(CENTERS):
+        u = auto._set_clump(ctx, u, slot, c + 0.01, [2.5], 0.03)
+    steps = []
+    return auto._final(ctx, u, np.ones(3), steps) + (steps,)
+
+
 def test_final_refit_caps_the_perturbed_starts(monkeypatch):
     """`auto._final`: the unperturbed start runs first, the perturbed ones get at most
     FINAL_STEP_FACTOR times its LM steps (at least FINAL_MIN_STEPS), and the start kept is
@@ -180,13 +192,7 @@ def test_final_refit_caps_the_perturbed_starts(monkeypatch):
     monkeypatch.setattr(auto, "FINAL_STEP_FACTOR", 1)
     monkeypatch.setattr(auto, "FINAL_MIN_STEPS", 1)
     monkeypatch.setattr(auto, "FINAL_START_SIGMA", 1e6)
-    data, var = _observe(Source(clumps=CLUMPS), 4)
-    opts = AutoOptions(max_clumps=3, n_starts=3, host=False).validate()
-    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
-    for slot, c in enumerate(CENTERS):
-        u = auto._set_clump(ctx, u, slot, c + 0.01, [2.5], 0.03)
-    steps = []
-    us, lnls, oks, b, jtj, idx = auto._final(ctx, u, np.ones(3), steps)
+    us, lnls, oks, b, jtj, idx, steps = _final_near_truth()
     n = steps[-1]["starts_n_steps"]
     assert len(n) == len(lnls) == 3 and steps[-1]["n_steps"] == n[b]
     capped = [k for i, k in enumerate(n[1:], 1) if i != b]
@@ -202,18 +208,12 @@ def test_final_starts_probe_the_optimums_basin():
     no more LM steps than the unperturbed start (here 5, 5 against 6; thrown 0.1 off in every
     entry, as before, 7 each). The clumps start 0.01" off the true centres: the point is the
     starts about the optimum, not finding it."""
-    data, var = _observe(Source(clumps=CLUMPS), 4)
-    opts = AutoOptions(max_clumps=3, n_starts=3, host=False).validate()
-    ctx, u = auto._setup(make_model, data, var, None, None, None, opts)
-    for slot, c in enumerate(CENTERS):
-        u = auto._set_clump(ctx, u, slot, c + 0.01, [2.5], 0.03)
-    steps = []
-    us, lnls, oks, b, jtj, idx = auto._final(ctx, u, np.ones(3), steps)
+    us, lnls, oks, b, jtj, idx, steps = _final_near_truth()
     assert len(lnls) == 3 and np.all(oks)
     assert np.all(lnls >= lnls.max() - 2.0), lnls
     n = steps[-1]["starts_n_steps"]
     assert max(n[1:]) <= n[0], n
-    assert np.ptp(us[:, idx[idx < u.size]], axis=0).max() > 0     # they did start elsewhere
+    assert np.ptp(us[:, idx[idx < us.shape[1]]], axis=0).max() > 0     # they did start elsewhere
 
 
 def test_final_start_offsets_follow_the_fisher_covariance():
