@@ -20,8 +20,8 @@
    summed, centre flux-weighted, ellipse from the pair's second moment) and each round
    clump as an elliptical one (where the renderer draws q and PA); the criterion decides.
    Then the final configuration is refitted from the counting's optimum, and from
-   `n_starts` − 1 starts drawn within 3σ of the optimum that refit finds (best kept, spread
-   reported: `_final`), where shape moves are made with every kept clump's q and PA free
+   `final_starts` − 1 starts drawn about the optimum that refit finds, at 3 times its Fisher
+   errors (best kept, spread reported: `_final`), where shape moves are made with every kept clump's q and PA free
    (`AutoOptions.final_shape`).
 4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
    `flag` (0 = fine; bits in `FLAGS`) and blend columns.
@@ -994,8 +994,8 @@ def _final(ctx: _Ctx, u, active, steps):
     slot's Jacobian columns are zero and its step is zero, so leaving them out gives the
     same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
     The program is the counting steps' (`_solve_layout`): no compile here. The unperturbed
-    start first; the perturbed ones start about its optimum (`_start_offsets`: within
-    FINAL_START_SIGMA σ of it) and get at most FINAL_STEP_FACTOR times its steps, and
+    start first; the perturbed ones start about its optimum (`_start_offsets`: at
+    FINAL_START_SIGMA times its Fisher errors) and get at most FINAL_STEP_FACTOR times its steps, and
     one that ends above it (unconverged) is carried on to convergence. Returns (us, lnls,
     oks, b: the best start, its JᵀJ at its optimum and the entries of u that is over:
     `_uncertainty`)."""
@@ -1032,15 +1032,21 @@ def _start_offsets(jtj, idx, size: int, n: int, rng):
     """[n, size] offsets in u of the perturbed final starts: N(0, FINAL_START_SIGMA² Cov_u)
     over the fitted entries idx (u.size marks padding), Cov_u the inverse of their JᵀJ at the
     optimum (`safe_inverse`: unconstrained directions get huge variances, hence the clip to
-    ±FINAL_START_MAX_U); 0 elsewhere."""
+    ±FINAL_START_MAX_U); 0 elsewhere. Where JᵀJ is not finite (a refit that ended so), the
+    offsets are N(0, FINAL_START_MAX_U²) in each entry instead."""
     idx = np.asarray(idx)
     keep = idx < size
-    cov = np.asarray(covariance_from_fisher_u(jnp.asarray(np.asarray(jtj)[np.ix_(keep, keep)]),
-                                              jnp.ones(int(keep.sum()))))
-    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-    draw = (v * np.sqrt(np.clip(w, 0.0, None))) @ rng.normal(size=(int(keep.sum()), n))
+    k = int(keep.sum())
+    jtj = np.asarray(jtj)[np.ix_(keep, keep)]
+    z = rng.normal(size=(k, n))
+    if np.all(np.isfinite(jtj)):
+        cov = np.asarray(covariance_from_fisher_u(jnp.asarray(jtj), jnp.ones(k, jtj.dtype)))
+        w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+        draw = FINAL_START_SIGMA * (v * np.sqrt(np.clip(w, 0.0, None))) @ z
+    else:
+        draw = FINAL_START_MAX_U * z
     out = np.zeros((n, size))
-    out[:, idx[keep]] = np.clip(FINAL_START_SIGMA * draw.T, -FINAL_START_MAX_U, FINAL_START_MAX_U)
+    out[:, idx[keep]] = np.clip(draw.T, -FINAL_START_MAX_U, FINAL_START_MAX_U)
     return out
 
 

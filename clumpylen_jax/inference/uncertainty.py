@@ -75,10 +75,12 @@ def covariance_from_fisher_u(fisher_u, dxdu):
     """Covariance of the physical x from the Fisher matrix in the unconstrained u (JᵀJ of the
     whitened residuals' Jacobian in u) and the transforms' slopes dx/du, all elementwise:
     F_x = D⁻¹ F_u D⁻¹ with D = diag(dx/du), inverted by `safe_inverse`. A zero slope (a
-    transform's saturated end) is taken as the smallest float: that entry's variance then
-    becomes huge, not NaN. One program (op by op, a dozen one-op compiles)."""
+    transform's saturated end) is taken as the smallest float, divided by once per side:
+    that entry's row of F_u is 0 there, which stays 0 (no information, a huge variance),
+    where dividing by d² (which underflows to 0) made 0/0 and a NaN in every entry. One
+    program (op by op, a dozen one-op compiles)."""
     d = jnp.where(dxdu != 0, dxdu, jnp.finfo(dxdu.dtype).tiny)
-    return safe_inverse(fisher_u / jnp.outer(d, d))
+    return safe_inverse(fisher_u / d[:, None] / d[None, :])
 
 
 def _model_vector(scene_model, param, x, active=None):
