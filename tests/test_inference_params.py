@@ -10,6 +10,7 @@ from clumpylen_jax.inference import Free, Transform, make_state, parametrize, sa
 from clumpylen_jax.inference.catalog import errors_state, fit_table
 from clumpylen_jax.inference.diagnostics import effective_sample_size, split_rhat
 from clumpylen_jax.inference.transforms import default_transform
+from clumpylen_jax.inference.uncertainty import covariance_from_fisher_u
 from clumpylen_jax.source import Clumps, Sersic, Source
 
 
@@ -73,6 +74,22 @@ def test_safe_inverse_singular_stays_finite():
     np.testing.assert_allclose(c[0, 0], 0.25)
     assert c[2, 2] > 1e10
     assert np.all(np.isfinite(np.asarray(safe_inverse(jnp.zeros((2, 2))))))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_covariance_from_fisher_u_with_a_saturated_transform(dtype):
+    """`uncertainty.covariance_from_fisher_u`: an entry whose transform has saturated (dx/du
+    = 0, so its Jacobian column in u and its row of JᵀJ are 0) gets a huge variance and the
+    others their exact one, finite, in float32 and float64 (dividing by the slope squared,
+    which underflows, gave 0/0: NaN everywhere)."""
+    f = np.zeros((3, 3))
+    f[:2, :2] = [[4.0, 1.0], [1.0, 3.0]]
+    slope = np.array([2.0, 0.5, 0.0])
+    cov = np.asarray(covariance_from_fisher_u(jnp.asarray(f, dtype), jnp.asarray(slope, dtype)))
+    assert np.all(np.isfinite(cov))
+    want = np.linalg.inv(f[:2, :2] / np.outer(slope[:2], slope[:2]))
+    np.testing.assert_allclose(cov[:2, :2], want, rtol=1e-5 if dtype == np.float32 else 1e-10)
+    assert cov[2, 2] > 1e6 * np.abs(want).max()
 
 
 def test_safe_inverse_keeps_weak_parameters_errors_beside_a_strong_one():

@@ -21,8 +21,8 @@
    clump as an elliptical one (where the renderer draws q and PA); the criterion decides.
    Then the final configuration is refitted from the counting's optimum, and from
    `final_starts` − 1 starts drawn about the optimum that refit finds, at 3 times its Fisher
-   errors (best kept, spread reported: `_final`), where shape moves are made with every kept clump's q and PA free
-   (`AutoOptions.final_shape`).
+   errors (best kept, spread reported: `_final`), where shape moves are made with every
+   kept clump's q and PA free (`AutoOptions.final_shape`).
 4. Errors from the Fisher matrix of the final fit; a catalogue row per clump with a
    `flag` (0 = fine; bits in `FLAGS`) and blend columns.
 
@@ -995,8 +995,8 @@ def _final(ctx: _Ctx, u, active, steps):
     same iterations without computing them (5 kept of 20 slots: a quarter of the columns).
     The program is the counting steps' (`_solve_layout`): no compile here. The unperturbed
     start first; the perturbed ones start about its optimum (`_start_offsets`: at
-    FINAL_START_SIGMA times its Fisher errors) and get at most FINAL_STEP_FACTOR times its steps, and
-    one that ends above it (unconverged) is carried on to convergence. Returns (us, lnls,
+    FINAL_START_SIGMA times its Fisher errors) and get at most FINAL_STEP_FACTOR times its
+    steps, and one that ends above it (unconverged) is carried on to convergence. Returns (us, lnls,
     oks, b: the best start, its JᵀJ at its optimum and the entries of u that is over:
     `_uncertainty`)."""
     s = ctx.opts.n_starts if ctx.opts.final_starts is None else ctx.opts.final_starts

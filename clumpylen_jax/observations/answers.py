@@ -310,8 +310,8 @@ def sed_fit(flux_ujy, cov_ujy, filters, z, sps_options=None, cosmology=(70.0, 0.
         # at an age can be ≤ 0 (colours no age matches, within tight colour errors)
         w = 1.0 / np.diagonal(C[i])
         mhat = np.clip((model * w) @ F[i] / ((model**2) @ w), 1e-30, None)
-        m = 10 ** (np.log10(np.median(mhat)) + np.linspace(-3, 3, MASS_GRID))
-        logm = np.log10(m)
+        logm = np.log10(np.median(mhat)) + np.linspace(-3, 3, MASS_GRID)
+        m = 10 ** logm
         # χ² = (F − m f_a)ᵀ W (F − m f_a), expanded in m   [A, M]
         chi2 = F[i] @ W @ F[i] - 2.0 * mwf[:, None] * m + mwm[:, None] * m ** 2
         post = np.exp(-0.5 * (chi2 - chi2.min()))
