@@ -275,6 +275,24 @@ def _detection_completeness(prep, true, kind, seed, n_trials):
             np.diag(deblended.completeness))
 
 
+def _truth_against_fit(d: Path, true, fit):
+    """χ² of the noiseless truth and of the fitted model against the image (the simulation's
+    VARIANCE, which the fit's σ equals), and the BIC difference truth − fit, counting 4
+    parameters per clump (flux, β, R_e) and 2 more per elliptical one (truth: q < 1; fit: q
+    fitted). ΔBIC < 0: the truth is the better model by the fit's own criterion, so a miss is
+    the search's; > 0: the data do not ask for the truth's extra clumps (the criterion's)."""
+    with fits.open(d / "run/bands/F200W.fits") as h:
+        data, truth, var = (np.asarray(h[k].data, float) for k in (0, "NOISELESS", "VARIANCE"))
+    model = np.asarray(fits.getdata(d / "fit/residuals_F200W.fits", "MODEL"), float)
+    n = data.size
+    chi2_t, chi2_f = (float(np.sum((data - m) ** 2 / var)) for m in (truth, model))
+    k_t = int(np.sum(4 + 2 * (np.asarray(true["q"]) < 1)))
+    k_f = int(np.sum(4 + 2 * np.isfinite(np.asarray(fit["q_err"], float)))) if "q_err" in fit.colnames \
+        else 4 * len(fit)
+    return {"chi2_truth": chi2_t, "chi2_fit": chi2_f, "n_pix": n, "k_truth": k_t, "k_fit": k_f,
+            "delta_bic_truth_fit": chi2_t - chi2_f + (k_t - k_f) * float(np.log(n))}
+
+
 def run_one(kind, seed, work: Path, psf: str = "gaussian", completeness_trials: int = 8):
     d = work / f"{kind}-{seed}"
     if not (d / "fit_s.json").exists():   # a kept seed (--keep) is evaluated again, not refitted
@@ -326,7 +344,8 @@ def run_one(kind, seed, work: Path, psf: str = "gaussian", completeness_trials: 
               for j in range(len(fit)) if near[:, j].sum() > 1]
     return {"kind": kind, "seed": seed, "clumps": rows, "n_fit": len(fit), **timing,
             "false": len(unmatched), "false_snr10": int(np.sum(fit_snr[unmatched] > 10)) if unmatched else 0,
-            "false_iso": int(len(fit) - np.sum(m_iso >= 0)), "blends": blends}
+            "false_iso": int(len(fit) - np.sum(m_iso >= 0)), "blends": blends,
+            **_truth_against_fit(d, true, fit)}
 
 
 def summarise(results):
@@ -390,13 +409,18 @@ def _write(results, kinds, n_seeds, wall_s, name="recovery", psf="gaussian"):
              f"{machine()['date']}; {wall_s:.0f} s wall in all", "",
              "Per seed: fit wall time, 1-min load average when it ended (the machine "
              "is shared), the process's peak RSS so far, clumps found, false (unmatched) ones, "
-             "recovered/true.", "",
-             "| scene | seed | fit s | load | peak RSS GB | found | false (S/N>10) | recovered |",
-             "|---|---|---|---|---|---|---|---|"]
+             "recovered/true; χ² of the fit and of the noiseless truth, and ΔBIC truth − fit "
+             "(< 0: the truth is better by the fit's criterion, a miss of the search; > 0: the "
+             "data do not ask for the truth's clumps).", "",
+             "| scene | seed | fit s | load | peak RSS GB | found | false (S/N>10) | recovered "
+             "| χ² fit | χ² truth | ΔBIC |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['kind']} | {r['seed']} | {r['fit_s']:.0f} | {r['load']:.1f} | "
               f"{r.get('peak_rss_mb', float('nan')) / 1024:.1f} | {r['n_fit']} | "
               f"{r['false']} ({r['false_snr10']}) | {sum(c['recovered'] for c in r['clumps'])}/"
-              f"{len(r['clumps'])} |" for r in results]
+              f"{len(r['clumps'])} | {r.get('chi2_fit', float('nan')):.1f} | "
+              f"{r.get('chi2_truth', float('nan')):.1f} | "
+              f"{r.get('delta_bic_truth_fit', float('nan')):+.1f} |" for r in results]
     lines.append("")
     for k, s in summary.items():
         lines += [f"## {k}", "", "| Fisher S/N | clumps | recovered (fit) | detection-only "

@@ -146,7 +146,7 @@ class ClumpConfig:
             self.size_scatter_ln,
             "a finite number >= 0",
         )
-        _validate_age_range(self.age_slope, self.age_min_myr, self.age_max_myr, prefix=f"{prefix}.ages")
+        validate_age_range(self.age_slope, self.age_min_myr, self.age_max_myr, prefix=f"{prefix}.ages")
         qr = self.q_range
         require(
             isinstance(qr, (tuple, list))
@@ -245,7 +245,7 @@ def _validate_cmf(slope, m_cut, delta, gamma, m_min, m_max, *, prefix: str) -> N
     require(m_min < m_max, f"{prefix}.m_min_msun", m_min, f"a value below m_max_msun = {m_max}")
 
 
-def _validate_age_range(slope, t_min, t_max, *, prefix: str) -> None:
+def validate_age_range(slope, t_min, t_max, *, prefix: str) -> None:
     _finite(slope, f"{prefix}.slope")
     _finite_positive(t_min, f"{prefix}.min_myr")
     _finite_positive(t_max, f"{prefix}.max_myr")
@@ -391,7 +391,7 @@ def sample_ages_myr(
 
     α_t = −1 (flat in log t) is handled exactly.
     """
-    _validate_age_range(slope, min_myr, max_myr, prefix="source.clumps.ages")
+    validate_age_range(slope, min_myr, max_myr, prefix="source.clumps.ages")
     return sample_power_law(rng, slope, min_myr, max_myr, size)
 
 

@@ -279,6 +279,17 @@ def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
                      ("sampler_warmup", -1)):
         with pytest.raises(ConfigError, match=f"fit.{key}"):
             parse_observation_scene({"observations": doc["observations"], "fit": {key: bad}})
+    # the SED fit's age prior: the simulator's clump ages unless `[sps] ages` says otherwise
+    sc = parse_observation_scene({"observations": doc["observations"], "scene": {"z_source": 2.0},
+                                  "sps": {"ages": {"max_myr": 1000.0}, "dust_av": 0.1}})
+    assert sc.age_prior == (-0.5, 1.0, 1000.0) and dict(sc.sps) == {"dust_av": 0.1}
+    for ages, setting in (({"min_myr": 0.0}, "sps.ages.min_myr"),
+                          ({"min_myr": 50.0, "max_myr": 20.0}, "sps.ages.min_myr"),
+                          ({"slope": "flat"}, "sps.ages.slope"), ({"max": 3.0}, "sps.ages.max"),
+                          ({"min_myr": 5000.0, "max_myr": 9000.0}, "sps.ages.min_myr")):
+        with pytest.raises(ConfigError, match=setting):   # the last: older than the universe
+            parse_observation_scene({"observations": doc["observations"],
+                                     "scene": {"z_source": 2.0}, "sps": {"ages": ages}})
 
 
 # ----------------------------------------------------------------------------- a mock fitted back

@@ -174,6 +174,7 @@ class ObservationScene:
     cosmology: tuple = (70.0, 0.3)
     path: Optional[str] = None
     sps: tuple = ()                 # extra photometry.ab_magnitudes options
+    age_prior: tuple = ()           # (slope, min_myr, max_myr) of the SED fit's p(t) ∝ t^slope
 
 
 def _num(v) -> bool:
@@ -301,13 +302,34 @@ def parse_observation_scene(doc: dict, path: Optional[str] = None) -> Observatio
     if isinstance(clumps, str) and clumps not in ("auto", "none"):
         fit["clumps"] = str(base / clumps)
     options = FitOptions(**fit).validate()
-    sps = doc.get("sps", {})
-    _check_keys(sps, {"metallicity", "sfh", "sfh_duration_myr", "dust_av"}, "sps")
+    sps = dict(doc.get("sps", {}))
+    _check_keys(sps, {"metallicity", "sfh", "sfh_duration_myr", "dust_av", "ages"}, "sps")
+    cosmology = (float(cosmo.get("H0", 70.0)), float(cosmo.get("Om0", 0.3)))
+    age_prior = _age_prior(sps.pop("ages", {}), z, cosmology)
     return ObservationScene(sc.get("name", Path(path).stem if path else "fit"), specs, options,
                             None if z is None else float(z), seed,
                             _lens(doc.get("lens"), None if z is None else float(z), base),
-                            (float(cosmo.get("H0", 70.0)), float(cosmo.get("Om0", 0.3))),
-                            path, tuple(sorted(sps.items())))
+                            cosmology, path, tuple(sorted(sps.items())), age_prior)
+
+
+def _age_prior(t, z, cosmology) -> tuple:
+    """(slope, min_myr, max_myr) of the SED fit's age prior from `[sps] ages` (the keys of a
+    simulation scene's `[source.clumps.ages]`; missing ones from `defaults.AGES`)."""
+    from .. import defaults as D
+    from ..cosmology import make_cosmology
+    from ..population import validate_age_range
+
+    if not isinstance(t, dict):
+        raise ConfigError("sps.ages", t, "a table with slope, min_myr, max_myr")
+    _check_keys(t, set(D.AGES), "sps.ages")
+    slope, lo, hi = (t.get(k, D.AGES[k]) for k in ("slope", "min_myr", "max_myr"))
+    validate_age_range(slope, lo, hi, prefix="sps.ages")
+    if z is not None:
+        universe = float(make_cosmology(*cosmology).age(float(z)).to_value("Myr"))
+        if lo >= universe:
+            raise ConfigError("sps.ages.min_myr", lo, f"an age below the universe's "
+                              f"{universe:.0f} Myr at z_source = {z}")
+    return float(slope), float(lo), float(hi)
 
 
 def load_observation_scene(path: str) -> ObservationScene:
