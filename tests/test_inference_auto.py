@@ -837,3 +837,20 @@ def test_profile_refits_hold_r_e_and_do_not_beat_the_optimum():
     assert np.all(d_lnl > -0.5), d_lnl
     assert np.max(d_lnl) > 1.0, d_lnl    # and R_e is measured here: some trial costs ln L
     assert d_flux.shape == (len(want), 1) and np.all(np.isfinite(d_flux))
+
+
+def test_the_fitted_host_goes_into_the_tables_header():
+    """fit.ecsv's header holds the host and the background: a host with a cusp (high n) can
+    hold a compact clump's light, which only its parameters show."""
+    import json
+
+    from clumpylen_jax.inference.params import make_state
+
+    meta = auto._host_meta(make_state(Source(bulge=HOST, clumps=CLUMPS), 1,
+                                      background_counts_per_s=[0.02]))
+    assert meta["background_counts_per_s"] == [0.02]
+    h = meta["host"]
+    assert h["flux_counts_per_s"] == [40.0] and h["re_arcsec"] == 0.25 and h["n"] == 1.0
+    assert h["q"] == pytest.approx(float(HOST.q)) and len(h["center_arcsec"]) == 2
+    json.dumps(meta)          # plain numbers: the ECSV header is YAML
+    assert "host" not in auto._host_meta(make_state(Source(clumps=CLUMPS), 1))

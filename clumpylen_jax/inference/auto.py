@@ -1286,8 +1286,22 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
                        "threshold": opts.resolved_threshold, "log_likelihood": lnl,
                        "converged": ok, "n_pixels": ctx.n_pix, "max_clumps": opts.max_clumps,
                        "starts_lnL": [float(v) for v in lnls], "starts_near_best": spread[2],
-                       "re_bounds_arcsec": list(ctx.re_bounds)})
+                       "re_bounds_arcsec": list(ctx.re_bounds), **_host_meta(state)})
     return AutoFit(_compact(state, idx), ctx.param, unc, table, steps, ctx.model, u, active, lnl, ok)
+
+
+def _host_meta(state) -> dict:
+    """The fitted host (Sérsic bulge: centre, R_e, n, q, PA in the source plane; flux per band in
+    counts/s) and background per band, for fit.ecsv's header: what holds the light the clumps
+    do not (a host with a cusp can hold a compact clump's)."""
+    out = {"background_counts_per_s": np.asarray(state.background_counts_per_s, float).tolist()}
+    h = state.source.bulge
+    if h is not None:
+        out["host"] = {"center_arcsec": np.asarray(h.center_arcsec, float).tolist(),
+                       "flux_counts_per_s": np.asarray(h.flux, float).reshape(-1).tolist(),
+                       **{k: float(np.asarray(getattr(h, k), float).reshape(-1)[0])
+                          for k in ("re_arcsec", "n", "q", "pa_rad")}}
+    return out
 
 
 def lensed_fit_accuracy(accuracy):
