@@ -669,6 +669,62 @@ def test_host_moves_swap_roles_with_a_broader_clump_or_reseed_the_host():
     assert auto._host_moves(ctx, u, u0, active) == []
 
 
+def test_a_host_with_a_cusp_gives_its_centre_to_a_clump():
+    """`auto._host_moves`: a host whose Sérsic n (4) is above the moments' holds a compact
+    clump's light in its cusp (the cluster arc's seed 0: n 5.0, R_e 0.025" on an S/N 30
+    clump, truth n 1, 0.08"). The cusp move keeps the host's centre, R_e, q and PA, takes its
+    n back to the moments' and CUSP_FLUX_FRACTION of its flux into a new clump at its
+    centre with CUSP_RE_FRACTION of its R_e, in the first free slot. A host at the
+    moments' n gets none (the test above). No fit."""
+    img = _blobs(np.array([[10, 12], [25, 30]]), [5.0, 3.0]) + 0.5
+    opts = AutoOptions(max_clumps=4, n_starts=4, re_max_arcsec=4 * PIX).validate()
+    ctx, u0 = auto._setup(make_model, [img], [np.full(img.shape, 0.01)], None, None, None, opts)
+    st = ctx.param.state(jnp.asarray(u0))
+    n0 = float(st.source.bulge.n)
+    cusp = eqx.tree_at(lambda h: (h.n, h.flux, h.re_arcsec, h.center_arcsec), st.source.bulge,
+                       (jnp.asarray(4.0), jnp.array([10.0]), jnp.asarray(0.2),
+                        jnp.array([0.05, -0.02])))
+    u = np.asarray(ctx.param.initial(eqx.tree_at(lambda s: s.source.bulge, st, cusp)))
+    u = auto._set_clump(ctx, u, 0, [-0.2, 0.1], [2.0], 0.02)
+    active = np.array([1.0, 0.0, 0.0, 0.0])
+    moves = auto._host_moves(ctx, u, u0, active)
+    assert [(m[0], m[1]) for m in moves] == [("reseed", 1), ("cusp", 1)]
+    got = ctx.param.state(jnp.asarray(moves[1][2])).source
+    assert float(got.bulge.n) == pytest.approx(n0) and n0 < 4.0
+    assert float(got.bulge.flux[0]) == pytest.approx((1 - auto.CUSP_FLUX_FRACTION) * 10.0)
+    assert float(got.bulge.re_arcsec) == pytest.approx(0.2)
+    assert np.allclose(got.bulge.center_arcsec, [0.05, -0.02])
+    assert np.allclose(got.clumps.center_arcsec[1], [0.05, -0.02])
+    assert float(got.clumps.flux[1, 0]) == pytest.approx(auto.CUSP_FLUX_FRACTION * 10.0)
+    assert float(got.clumps.re_arcsec[1]) == pytest.approx(auto.CUSP_RE_FRACTION * 0.2)
+    assert moves[1][3].tolist() == [1.0, 1.0, 0.0, 0.0] and moves[1][4][0] == 1
+    assert np.all(np.isfinite(moves[1][2]))
+
+
+def test_a_cusp_move_is_made_only_where_no_swap_or_reseed_is(monkeypatch):
+    """`auto._rehost`: a reseed and a cusp move both accepted (ln L +41.5 and +41.8, as in a
+    JWST pulls mock): the reseed is made (it puts the host back on the diffuse light). With
+    the reseed short of the criterion (+10), the cusp is made. The local fits are stood in
+    for (no fit)."""
+    img = _blobs(np.array([[10, 12], [25, 30]]), [5.0, 3.0]) + 0.5
+    opts = AutoOptions(max_clumps=4, n_starts=4, re_max_arcsec=4 * PIX).validate()
+    ctx, u0 = auto._setup(make_model, [img], [np.full(img.shape, 0.01)], None, None, None, opts)
+    u = auto._set_clump(ctx, np.asarray(u0), 0, [0.1, 0.0], [4.0], 0.05)
+    active = np.array([1.0, 0.0, 0.0, 0.0])
+    act = np.array([1.0, 1.0, 0.0, 0.0])
+    trial = [auto._set_clump(ctx, u, 1, c, [2.5], 0.03) for c in ([-0.2, 0.1], [0.0, 0.0])]
+    monkeypatch.setattr(auto, "_host_moves", lambda *a: [("reseed", 1, trial[0], act, [1, 0]),
+                                                         ("cusp", 1, trial[1], act, [1, 0])])
+    monkeypatch.setattr(auto, "_prune", lambda ctx, u, lnl, active, steps: (lnl, active))
+    for gains, made in (((41.5, 41.8), "reseed"), ((10.0, 41.8), "cusp")):
+        monkeypatch.setattr(auto, "_fit_local", lambda ctx, us, *a, g=gains: (
+            np.asarray(us), -100.0 + np.array(g), np.array([True, True]), np.array([4, 4])))
+        steps = []
+        u_out, lnl, _, _ = auto._rehost(ctx, u, u0, -100.0, active, np.ones(4, int), steps)
+        assert [s["action"] for s in steps if s["made"]] == [made]
+        assert np.array_equal(u_out, trial[0 if made == "reseed" else 1])
+
+
 def test_a_rejected_host_move_that_fits_as_well_is_kept_as_an_alternative(monkeypatch):
     """`auto._rehost`: a reseed that raises ln L by 5 (less than the criterion asks for its
     extra clump) is rejected and its clumps are recorded in its step ("alternative"), which

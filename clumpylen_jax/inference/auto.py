@@ -95,6 +95,10 @@ FLAGS = {"not_converged": 1, "re_at_bound": 2, "position_at_box_edge": 4,
 # (a JWST mock: magnitudes 10σ too bright, the host on a missed clump, benchmarks/
 # results/observation_pulls_jwst_s0_11.md seed 4)
 ALTERNATIVE_DLNL = 2.0
+# the cusp move (`_host_moves`): a clump of this share of the host's flux and this fraction
+# of its R_e at its centre, the host's n back to the moments'
+CUSP_FLUX_FRACTION = 0.3
+CUSP_RE_FRACTION = 0.1
 ALTERNATIVE_SIGMA = 2.0
 # "shape_degenerate": the profile of R_e (`_profile`) found the R_e error more than
 # PROFILE_FLAG_RATIO times the Fisher one: R_e, q and PA trade off along a curved valley (one
@@ -684,7 +688,13 @@ def _host_moves(ctx: _Ctx, u, u0, active):
       at the host's centre, flux and R_e (clipped into the clumps' bounds). The same
       parameters: accepted when ln L rises.
     - ("reseed", slot): the host from the data's moments again (flux: the moments' less the
-      clumps'), the old host a new clump in a free slot: judged as an added clump."""
+      clumps'), the old host a new clump in a free slot: judged as an added clump.
+    - ("cusp", slot): a compact clump near the host's centre holds its light in the host's
+      cusp (a Sérsic n above the moments'): the host's n back to the moments', a clump of
+      CUSP_FLUX_FRACTION of its flux and CUSP_RE_FRACTION of its R_e at its centre, in a
+      free slot: judged as an added clump, and made only where no swap or reseed is
+      accepted (`_rehost`). The cluster arc's seed 0: an S/N 30 clump 7.5 mas from the
+      host's centre was missed, the truth ΔBIC 69 better than the fit."""
     if ctx.opts.host is False:
         return []
     st, st0 = ctx.param.state(jnp.asarray(u)), ctx.param.state(jnp.asarray(u0))
@@ -723,6 +733,15 @@ def _host_moves(ctx: _Ctx, u, u0, active):
         act = active.copy()
         act[j] = 1.0
         moves.append(("reseed", j, v, act, _local_slots(ctx, v, act, j, np.asarray(host.center_arcsec))))
+        if float(host.n) > float(host0.n):
+            f = np.asarray(host.flux)
+            new = eqx.tree_at(lambda h: (h.flux, h.n), host,
+                              (jnp.asarray((1.0 - CUSP_FLUX_FRACTION) * f, float), host0.n))
+            v = np.asarray(ctx.param.initial(eqx.tree_at(lambda x: x.source.bulge, st, new)))
+            v = _set_clump(ctx, v, j, np.asarray(host.center_arcsec), CUSP_FLUX_FRACTION * f,
+                           CUSP_RE_FRACTION * re_host)
+            moves.append(("cusp", j, v, act,
+                          _local_slots(ctx, v, act, j, np.asarray(host.center_arcsec))))
     # the broadest clumps first: n_starts moves are solved (one batch, no compile)
     return sorted(moves, key=lambda m: -res[m[1]] if m[0] == "swap" else np.inf)[:ctx.opts.n_starts]
 
@@ -742,7 +761,12 @@ def _rehost(ctx: _Ctx, u, u0, lnl, active, n_images, steps):
         else:
             judged.append(_criterion(ctx.opts, float(v - lnl), ctx.k_clump, ctx.n_pix))
     ok = [b for b in range(len(moves)) if judged[b][1]]
-    best = max(ok, key=lambda b: lnls[b]) if ok else -1
+    # a cusp move only where no swap or reseed is accepted: those put a host that sits on a
+    # clump back on the diffuse light, which a cusp move would keep compact with one clump
+    # more (a JWST pulls mock: the cusp ahead of the reseed by Δln L 0.3 kept the host's R_e
+    # at 0.06″ for 0.3″ and moved two clumps' magnitudes by 1.6σ)
+    first = [b for b in ok if moves[b][0] != "cusp"] or ok
+    best = max(first, key=lambda b: lnls[b]) if first else -1
     for b, (kind, slot, _, act, _) in enumerate(moves):
         made = b == best
         after_act, after_lnl = (act, lnls[b]) if made else (active, lnl)
@@ -760,7 +784,7 @@ def _rehost(ctx: _Ctx, u, u0, lnl, active, n_images, steps):
     if best < 0:
         return u, lnl, active, n_images
     u, lnl, active = us[best], float(lnls[best]), moves[best][3]
-    if moves[best][0] == "reseed":   # the old host's light: seen at least once
+    if moves[best][0] in ("reseed", "cusp"):   # the new clump's light: seen at least once
         n_images = n_images.copy()
         n_images[moves[best][1]] = 1
     lnl, active = _prune(ctx, u, lnl, active, steps)
