@@ -232,7 +232,7 @@ def _skewed_pull(fit, j, col, truth):
     if f"{col}_p16" not in fit.colnames:
         return float((m - truth) / fit[f"{col}_err"][j])
     side = m - float(fit[f"{col}_p16"][j]) if truth < m else float(fit[f"{col}_p84"][j]) - m
-    return float((m - truth) / side)
+    return float((m - truth) / side) if side > 0 else float("nan")
 
 
 def _pulls(true: Table, fit: Table, names, pix):

@@ -280,7 +280,9 @@ def _truth_against_fit(d: Path, true, fit):
     VARIANCE, which the fit's σ equals), and the BIC difference truth − fit, counting 4
     parameters per clump (flux, β, R_e) and 2 more per elliptical one (truth: q < 1; fit: q
     fitted). ΔBIC < 0: the truth is the better model by the fit's own criterion, so a miss is
-    the search's; > 0: the data do not ask for the truth's extra clumps (the criterion's)."""
+    the search's; > 0: the data do not ask for the truth's extra clumps (the criterion's).
+    Every pixel counts (these mocks have no mask); the hosts' parameters are left out of
+    both counts (the truth's one Sérsic against the fit's one Sérsic)."""
     with fits.open(d / "run/bands/F200W.fits") as h:
         data, truth, var = (np.asarray(h[k].data, float) for k in (0, "NOISELESS", "VARIANCE"))
     model = np.asarray(fits.getdata(d / "fit/residuals_F200W.fits", "MODEL"), float)

@@ -694,6 +694,8 @@ def test_a_host_with_a_cusp_gives_its_centre_to_a_clump():
     assert float(got.bulge.flux[0]) == pytest.approx((1 - auto.CUSP_FLUX_FRACTION) * 10.0)
     assert float(got.bulge.re_arcsec) == pytest.approx(0.2)
     assert np.allclose(got.bulge.center_arcsec, [0.05, -0.02])
+    assert float(got.bulge.q) == pytest.approx(float(cusp.q))
+    assert float(got.bulge.pa_rad) == pytest.approx(float(cusp.pa_rad))
     assert np.allclose(got.clumps.center_arcsec[1], [0.05, -0.02])
     assert float(got.clumps.flux[1, 0]) == pytest.approx(auto.CUSP_FLUX_FRACTION * 10.0)
     assert float(got.clumps.re_arcsec[1]) == pytest.approx(auto.CUSP_RE_FRACTION * 0.2)
@@ -896,17 +898,20 @@ def test_profile_refits_hold_r_e_and_do_not_beat_the_optimum():
 
 
 def test_the_fitted_host_goes_into_the_tables_header():
-    """fit.ecsv's header holds the host and the background: a host with a cusp (high n) can
-    hold a compact clump's light, which only its parameters show."""
+    """fit.ecsv's header holds the host (`catalog.host_meta`, the layout of every fit's
+    table): a host with a cusp (high n) can hold a compact clump's light, which only its
+    parameters show. Errors only where a parametrization's labels and 1σ are given."""
     import json
 
+    from clumpylen_jax.inference.catalog import host_meta
     from clumpylen_jax.inference.params import make_state
 
-    meta = auto._host_meta(make_state(Source(bulge=HOST, clumps=CLUMPS), 1,
-                                      background_counts_per_s=[0.02]))
-    assert meta["background_counts_per_s"] == [0.02]
-    h = meta["host"]
-    assert h["flux_counts_per_s"] == [40.0] and h["re_arcsec"] == 0.25 and h["n"] == 1.0
+    state = make_state(Source(bulge=HOST, clumps=CLUMPS), 1)
+    h = host_meta(state)["bulge"]
+    assert h["flux"] == [40.0] and h["re_arcsec"] == 0.25 and h["n"] == 1.0
     assert h["q"] == pytest.approx(float(HOST.q)) and len(h["center_arcsec"]) == 2
-    json.dumps(meta)          # plain numbers: the ECSV header is YAML
-    assert "host" not in auto._host_meta(make_state(Source(clumps=CLUMPS), 1))
+    assert not any(k.endswith("_err") for k in h)
+    with_err = host_meta(state, ("bulge.n[]", "bulge.flux[0]"), [0.3, 2.0])["bulge"]
+    assert with_err["n_err"] == 0.3 and with_err["flux_err"] == [2.0]
+    json.dumps(host_meta(state))          # plain numbers: the ECSV header is YAML
+    assert host_meta(make_state(Source(clumps=CLUMPS), 1)) == {}

@@ -283,9 +283,11 @@ def test_scene_parsing_resolves_paths_and_checks_fit_keys(tmp_path):
     sc = parse_observation_scene({"observations": doc["observations"], "scene": {"z_source": 2.0},
                                   "sps": {"ages": {"max_myr": 1000.0}, "dust_av": 0.1}})
     assert sc.age_prior == (-0.5, 1.0, 1000.0) and dict(sc.sps) == {"dust_av": 0.1}
+    with pytest.raises(ConfigError, match="sps"):
+        parse_observation_scene({"observations": doc["observations"], "sps": "bc03"})
     for ages, setting in (({"min_myr": 0.0}, "sps.ages.min_myr"),
                           ({"min_myr": 50.0, "max_myr": 20.0}, "sps.ages.min_myr"),
-                          ({"slope": "flat"}, "sps.ages.slope"), ({"max": 3.0}, "sps.ages.max"),
+                          ({"slope": "flat"}, "sps.ages.slope"), ({"max": 3.0}, r"sps\.ages\.max ="),
                           ({"min_myr": 5000.0, "max_myr": 9000.0}, "sps.ages.min_myr")):
         with pytest.raises(ConfigError, match=setting):   # the last: older than the universe
             parse_observation_scene({"observations": doc["observations"],
@@ -511,12 +513,12 @@ def test_fit_without_clumps_reports_the_host():
     import jax.numpy as jnp
 
     from clumpylen_jax.inference.params import make_state, parametrize
-    from clumpylen_jax.inference.run import _host_meta
+    from clumpylen_jax.inference.catalog import host_meta
     from clumpylen_jax.source import Sersic, Source
     f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
     src = Source(bulge=Sersic(f([3.0]), f(0.2), f(1.0), f(0.7), f(0.1), f([0.01, -0.02])))
     param = parametrize(make_state(src, 1), ["bulge.flux", "bulge.re_arcsec", "bulge.center_arcsec"])
-    meta = _host_meta(param.template, param, [0.1, 0.01, 0.002, 0.003])
+    meta = host_meta(param.template, param.labels, [0.1, 0.01, 0.002, 0.003])
     assert meta["bulge"]["flux"] == [3.0] and meta["bulge"]["flux_err"] == [0.1]
     assert meta["bulge"]["re_arcsec_err"] == 0.01
     assert meta["bulge"]["center_arcsec_err"] == [0.002, 0.003]

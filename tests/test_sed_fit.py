@@ -63,8 +63,9 @@ def test_two_rest_uv_bands_take_the_age_prior_of_the_clumps():
     1–100 Myr while M/L changes by ~1 dex: the mass then follows the age prior. Truths drawn
     as the simulator draws clump ages (`population.sample_ages_myr`, the default prior):
     the median mass is unbiased (|median Δlog m| < 0.1 dex) and [p16, p84] holds the truth
-    60–85 % of the time. The prior flat in log age out to the library's 14 Gyr (the SED fit
-    before 2026-11-28) puts the same masses 0.15–0.25 dex low (seeds 0–2)."""
+    60–85 % of the time. A prior flat in log age out to the universe's 3.3 Gyr at z = 2
+    (the SED fit before 2026-11-28 went on to the library's 14 Gyr) puts the same masses
+    0.14–0.26 dex low (seeds 0–2; this is seed 1)."""
     from clumpylen_jax.population import sample_ages_myr
 
     filters = ["HST/ACS/F606W", "HST/ACS/F814W"]
@@ -93,3 +94,20 @@ def test_the_age_prior_stops_at_the_age_of_the_universe():
     assert ages[0] == pytest.approx(1.0) and ages[-1] == pytest.approx(universe)
     # p(t) ∝ t^-0.5 on log-spaced nodes: weight ∝ t^0.5 per node
     assert np.allclose(np.diff(ln_w), 0.5 * np.diff(np.log(ages)))
+
+
+def test_the_default_age_prior_and_bad_ones():
+    """None and () take `defaults.AGES`; a prior that ends before it starts (min_myr above
+    the universe's age at z) is a ConfigError naming the setting, not a reversed grid."""
+    from clumpylen_jax import defaults as D
+    from clumpylen_jax.errors import ConfigError
+    from clumpylen_jax.observations.answers import age_grid_myr
+
+    for prior in (None, ()):
+        ages, _ = age_grid_myr(prior, Z)
+        assert ages[0] == pytest.approx(D.AGES["min_myr"])
+        assert ages[-1] == pytest.approx(D.AGES["max_myr"])
+    with pytest.raises(ConfigError, match="sps.ages.min_myr"):
+        age_grid_myr((-0.5, 5000.0, 9000.0), 2.0)
+    with pytest.raises(ConfigError, match="sps.ages"):
+        age_grid_myr((1.0, 2.0), 2.0)

@@ -52,7 +52,7 @@ from .. import profiles
 from ..errors import require
 from ..source import Clumps, Sersic, Source
 from . import capacity, seeding
-from .catalog import fit_table
+from .catalog import fit_table, host_meta
 from .likelihood import chi2_and_images, make_data
 from .params import (Free, FitState, Parametrization, entry_kinds, make_state, parametrize,
                      take_rows)
@@ -95,11 +95,11 @@ FLAGS = {"not_converged": 1, "re_at_bound": 2, "position_at_box_edge": 4,
 # (a JWST mock: magnitudes 10σ too bright, the host on a missed clump, benchmarks/
 # results/observation_pulls_jwst_s0_11.md seed 4)
 ALTERNATIVE_DLNL = 2.0
+ALTERNATIVE_SIGMA = 2.0
 # the cusp move (`_host_moves`): a clump of this share of the host's flux and this fraction
 # of its R_e at its centre, the host's n back to the moments'
 CUSP_FLUX_FRACTION = 0.3
 CUSP_RE_FRACTION = 0.1
-ALTERNATIVE_SIGMA = 2.0
 # "shape_degenerate": the profile of R_e (`_profile`) found the R_e error more than
 # PROFILE_FLAG_RATIO times the Fisher one: R_e, q and PA trade off along a curved valley (one
 # axis of the clump unresolved, e.g. across an arc), the R_e and flux errors are then the
@@ -694,7 +694,10 @@ def _host_moves(ctx: _Ctx, u, u0, active):
       CUSP_FLUX_FRACTION of its flux and CUSP_RE_FRACTION of its R_e at its centre, in a
       free slot: judged as an added clump, and made only where no swap or reseed is
       accepted (`_rehost`). The cluster arc's seed 0: an S/N 30 clump 7.5 mas from the
-      host's centre was missed, the truth ΔBIC 69 better than the fit."""
+      host's centre was missed, the truth ΔBIC 69 better than the fit.
+    At most n_starts moves: the swaps (broadest clump first), the reseed, the cusp, in that
+    order; with n_starts − 1 swaps or more the cusp is not tried (a host that many clumps
+    are broader than sits on a clump: the swaps are the moves for it)."""
     if ctx.opts.host is False:
         return []
     st, st0 = ctx.param.state(jnp.asarray(u)), ctx.param.state(jnp.asarray(u0))
@@ -747,8 +750,9 @@ def _host_moves(ctx: _Ctx, u, u0, active):
 
 
 def _rehost(ctx: _Ctx, u, u0, lnl, active, n_images, steps):
-    """The host moves (`_host_moves`), the best accepted one made, then pruning again (a clump
-    that held the host's light is redundant once the host has it). Each move is a step."""
+    """The host moves (`_host_moves`), the best accepted one made (a cusp move only where
+    no swap or reseed is accepted), then pruning again (a clump that held the host's light is
+    redundant once the host has it). Each move is a step."""
     moves = _host_moves(ctx, u, u0, active)
     if not moves:
         return u, lnl, active, n_images
@@ -1310,22 +1314,10 @@ def fit_without_truth(make_model, data, variances, masks=None, *, host_start=Non
                        "threshold": opts.resolved_threshold, "log_likelihood": lnl,
                        "converged": ok, "n_pixels": ctx.n_pix, "max_clumps": opts.max_clumps,
                        "starts_lnL": [float(v) for v in lnls], "starts_near_best": spread[2],
-                       "re_bounds_arcsec": list(ctx.re_bounds), **_host_meta(state)})
+                       "re_bounds_arcsec": list(ctx.re_bounds), "host": host_meta(state),
+                       "background_counts_per_s":
+                           np.asarray(state.background_counts_per_s, float).tolist()})
     return AutoFit(_compact(state, idx), ctx.param, unc, table, steps, ctx.model, u, active, lnl, ok)
-
-
-def _host_meta(state) -> dict:
-    """The fitted host (Sérsic bulge: centre, R_e, n, q, PA in the source plane; flux per band in
-    counts/s) and background per band, for fit.ecsv's header: what holds the light the clumps
-    do not (a host with a cusp can hold a compact clump's)."""
-    out = {"background_counts_per_s": np.asarray(state.background_counts_per_s, float).tolist()}
-    h = state.source.bulge
-    if h is not None:
-        out["host"] = {"center_arcsec": np.asarray(h.center_arcsec, float).tolist(),
-                       "flux_counts_per_s": np.asarray(h.flux, float).reshape(-1).tolist(),
-                       **{k: float(np.asarray(getattr(h, k), float).reshape(-1)[0])
-                          for k in ("re_arcsec", "n", "q", "pa_rad")}}
-    return out
 
 
 def lensed_fit_accuracy(accuracy):

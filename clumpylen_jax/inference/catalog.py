@@ -92,3 +92,28 @@ def fit_table(state: FitState, errors: Optional[FitState] = None, *, band_names,
                 mag_err = ab_magnitude_err(flux[:, b], f_err[:, b])
             add(f"mag_{name}", mag, np.where(flux[:, b] > 0, mag_err, np.inf))
     return t
+
+
+def host_meta(state: FitState, labels=None, err=None) -> dict:
+    """The fitted host components for fit.ecsv's header: {"bulge": …, "disk": …}, each with
+    flux per band (counts/s), re_arcsec, center_arcsec, n, q, pa_rad, and with `labels` and
+    `err` (a parametrization's labels and 1σ per entry) `<field>_err` for the fitted ones.
+    A fit without clumps still reports what it fitted; a fit with them shows where a host
+    holds light the clumps do not (a cusp can hold a compact clump's)."""
+    errs = {} if err is None else dict(zip(labels, np.asarray(err, float)))
+    src = state.render_source()
+    out = {}
+    for name, comp in (("bulge", src.bulge), ("disk", None if src.disk is None else src.disk.sersic)):
+        if comp is None:
+            continue
+        path = "bulge" if name == "bulge" else "disk.sersic"
+        d = {}
+        for field in ("flux", "re_arcsec", "center_arcsec", "n", "q", "pa_rad"):
+            val = np.asarray(getattr(comp, field), float)
+            d[field] = val.tolist()
+            e = [errs.get(f"{path}.{field}[{','.join(map(str, i))}]") for i in np.ndindex(val.shape)]
+            if any(x is not None for x in e):
+                d[f"{field}_err"] = [float("nan") if x is None else float(x) for x in e] \
+                    if val.shape else float(e[0])
+        out[name] = d
+    return out

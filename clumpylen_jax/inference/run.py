@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from ..errors import require
-from .catalog import errors_state, fit_table
+from .catalog import errors_state, fit_table, host_meta
 from .likelihood import make_data, predicted_images
 from .mcmc import ChainResult, posterior_median, sample_from_optimum, whitening_scale
 from .optimize import MapResult, fit_map, fit_map_multistart
@@ -61,28 +61,6 @@ def _write_residuals(out: Path, scene_model, data, state) -> list:
                             chi_bunit="")
         paths.append(path)
     return paths
-
-
-def _host_meta(state, param, err) -> dict:
-    """The fitted host components (flux per band, R_e, centre, n, q, PA) with 1σ errors, for
-    fit.ecsv's header: a fit without clumps still reports what it fitted."""
-    errs = dict(zip(param.labels, np.asarray(err, float)))
-    src = state.render_source()
-    out = {}
-    for name, comp in (("bulge", src.bulge), ("disk", None if src.disk is None else src.disk.sersic)):
-        if comp is None:
-            continue
-        path = "bulge" if name == "bulge" else "disk.sersic"
-        d = {}
-        for field in ("flux", "re_arcsec", "center_arcsec", "n", "q", "pa_rad"):
-            val = np.asarray(getattr(comp, field), float)
-            d[field] = val.tolist()
-            e = [errs.get(f"{path}.{field}[{','.join(map(str, i))}]") for i in np.ndindex(val.shape)]
-            if any(x is not None for x in e):
-                d[f"{field}_err"] = [float("nan") if x is None else float(x) for x in e] \
-                    if val.shape else float(e[0])
-        out[name] = d
-    return out
 
 
 def run_fit(scene_model, source_start, images, variances=None, *, free=None, method="map",
@@ -123,7 +101,7 @@ def run_fit(scene_model, source_start, images, variances=None, *, free=None, met
     table.meta.update({"method": method, "likelihood": likelihood,
                        "map_log_posterior": float(res.log_posterior),
                        "map_success": bool(res.success), "free": list(param.labels),
-                       "host": _host_meta(state, param, err)})
+                       "host": host_meta(state, param.labels, err)})
     files = []
     if out_dir is not None:
         files = _write_fit_files(Path(out_dir), table, chains, scene_model, data, state)

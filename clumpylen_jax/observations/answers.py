@@ -283,10 +283,18 @@ def age_grid_myr(age_prior, z, cosmology=(70.0, 0.3)):
     from ..cosmology import make_cosmology
     from ..sps import default_library
 
-    slope, lo, hi = ((D.AGES["slope"], D.AGES["min_myr"], D.AGES["max_myr"])
-                     if not age_prior else map(float, age_prior))
+    from ..errors import ConfigError
+
+    if age_prior is None or len(age_prior) == 0:
+        age_prior = (D.AGES["slope"], D.AGES["min_myr"], D.AGES["max_myr"])
+    if len(age_prior) != 3:
+        raise ConfigError("sps.ages", age_prior, "(slope, min_myr, max_myr)")
+    slope, lo, hi = map(float, age_prior)
     universe = float(make_cosmology(*cosmology).age(float(z)).to_value("Myr"))
     hi = min(hi, universe, float(default_library().age_range_myr[1]))
+    if not 0 < lo < hi:
+        raise ConfigError("sps.ages.min_myr", lo, f"an age in (0, {hi:.0f}) Myr: the prior "
+                          f"ends there (the universe's age at z = {z}, or the library's oldest)")
     ages = np.geomspace(lo, hi, AGE_GRID)
     return ages, (slope + 1.0) * np.log(ages)
 
@@ -306,9 +314,10 @@ def sed_fit(flux_ujy, cov_ujy, filters, z, sps_options=None, cosmology=(70.0, 0.
 
     age_prior: (slope, min_myr, max_myr) of p(t) ∝ t^slope (`age_grid_myr`; None: the
     simulator's clump ages, `defaults.AGES`). Where the colours barely move with age (two
-    rest-UV bands) the posterior is the prior's, and M/L spans ~1 dex over 1–100 Myr: a
-    prior flat in log age out to the library's 14 Gyr put masses of HST mocks at z = 2
-    0.4 dex low (pull mean −1.9 over 400 draws; tests/test_sed_fit.py).
+    rest-UV bands) the posterior is the prior's, and M/L spans ~1 dex over 1–100 Myr: the
+    prior used before, flat in log age out to the library's 14 Gyr, put the masses of HST
+    F606W + F814W mocks at z = 2 0.15–0.4 dex low, depending on the mocks' ages
+    (tests/test_sed_fit.py; benchmarks/README.md).
 
     Returns {mass_msun, mass_msun_err, mass_msun_p16, mass_msun_p84, age_myr, …} arrays
     [N]: median, half the 16–84 % width, the 16 and 84 % points; NaN where no band has

@@ -302,7 +302,10 @@ def parse_observation_scene(doc: dict, path: Optional[str] = None) -> Observatio
     if isinstance(clumps, str) and clumps not in ("auto", "none"):
         fit["clumps"] = str(base / clumps)
     options = FitOptions(**fit).validate()
-    sps = dict(doc.get("sps", {}))
+    sps = doc.get("sps", {})
+    if not isinstance(sps, dict):
+        raise ConfigError("sps", sps, "a table of stellar-population settings")
+    sps = dict(sps)
     _check_keys(sps, {"metallicity", "sfh", "sfh_duration_myr", "dust_av", "ages"}, "sps")
     cosmology = (float(cosmo.get("H0", 70.0)), float(cosmo.get("Om0", 0.3)))
     age_prior = _age_prior(sps.pop("ages", {}), z, cosmology)
