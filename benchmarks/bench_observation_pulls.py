@@ -2,7 +2,8 @@
 (issue 17: "on mocks written in the same real-product formats, fitted magnitudes, sizes and
 masses agree with the truth within their uncertainties, pulls ~ N(0, 1) over many clumps").
 
-Per seed and format, a z = 2 host (Sérsic n = 1) with N_CLUMPS round n = 1 clumps, whose band
+Per seed and format, a z = 2 host (Sérsic n = 1) with N_CLUMPS n = 1 clumps (round, or with
+--clump-q-min an axis ratio uniform in [Q, 1]; --clump-shape: the fit's clump_shape), whose band
 fluxes come from the stellar-population model (`photometry.band_fluxes_ujy`, constant SFH: a
 mass log-uniform in 10^6.8–10^8.2 M☉ and an age drawn as the simulator draws clump ages,
 `population.sample_ages_myr`, which is the SED fit's default prior), is rendered by the fit's
@@ -28,6 +29,7 @@ carry the background's only), PSF mismatch.
 
     .venv/bin/python benchmarks/bench_observation_pulls.py [--seeds 4] [--formats jwst,hst]
         [--psf-oversampling 1] [--truth-oversampling N] [--name observation_pulls] [--keep DIR]
+        [--clump-q-min 1.0] [--clump-shape round|elliptical]
 
 --psf-oversampling sets the fit's `[fit] psf_oversampling`; --truth-oversampling the mock's
 drawing (default: the same, so that the pulls measure the fitter; larger, e.g. 7, so that they
@@ -155,9 +157,11 @@ def _in_own_frame(source: Source, frame, band_frame, k: int) -> tuple:
 
 
 def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=None,
-          psf_sampling: int = 1):
+          psf_sampling: int = 1, clump_q_min: float = 1.0, clump_shape: str = "round"):
     """Write the mock's files and scene (drawn at `truth_oversampling`, default the fit's
-    `psf_oversampling`); returns (scene path, truth table, zero points)."""
+    `psf_oversampling`; clumps' q uniform in [clump_q_min, 1] and PA uniform, from a generator
+    of their own, so that every other draw is the round mock's; the scene's [fit]
+    clump_shape); returns (scene path, truth table, zero points)."""
     rng = np.random.default_rng(500 + seed)
     bands = FORMATS[kind]
     rot = float(rng.uniform(0, 360))
@@ -168,6 +172,9 @@ def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=
     frames = [BandFrame(shape, pix, celestial_wcs(h)) for (_, _, pix, shape), h in zip(bands, headers)]
     frame = fit_frame(frames, [b[0] for b in bands])
     t = _truth(rng, bands, frame)
+    shape_rng = np.random.default_rng(700 + seed)
+    q = shape_rng.uniform(clump_q_min, 1.0, N_CLUMPS) if clump_q_min < 1 else np.ones(N_CLUMPS)
+    pa = shape_rng.uniform(0.0, np.pi, N_CLUMPS) if clump_q_min < 1 else np.zeros(N_CLUMPS)
     if kind.startswith("jwst"):
         zps = [zeropoint_mjy_sr((pix / 206264.806) ** 2) for _, _, pix, _ in bands]
     else:
@@ -179,8 +186,7 @@ def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=
     truth = Source(bulge=Sersic(flux=f(host_flux), re_arcsec=f(t["host_re"]), n=f(1.0),
                                 q=f(t["host_q"]), pa_rad=f(t["host_pa"]), center_arcsec=f([0.0, 0.0])),
                    clumps=Clumps(center_arcsec=f(t["pos"]), flux=f(flux), re_arcsec=f(t["re"]),
-                                 n=f(np.ones(N_CLUMPS)), q=f(np.ones(N_CLUMPS)),
-                                 pa_rad=f(np.zeros(N_CLUMPS))))
+                                 n=f(np.ones(N_CLUMPS)), q=f(q), pa_rad=f(pa)))
     psfs = [load_psf_fits(_psf_file(work / f"psf_{name}.fits", pix, sampling=psf_sampling)) for name, _, pix, _ in bands]
     opts = FitOptions(clump_n=1.0, psf_oversampling=truth_oversampling or psf_oversampling)
     model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
@@ -210,11 +216,12 @@ def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=
                                        "PHOTPLAM": ACS[name][1]})
         lines.append(f'[[observations]]\nfilter = "{name}"\ninstrument = "{inst}"\n'
                      f'image = "{path}"\npsf = "{work / f"psf_{name}.fits"}"\n')
-    lines.append(f'[fit]\nclumps = "auto"\nclump_n = 1.0\npsf_oversampling = {psf_oversampling}\n')
+    lines.append(f'[fit]\nclumps = "auto"\nclump_n = 1.0\npsf_oversampling = {psf_oversampling}\n'
+                 f'clump_shape = "{clump_shape}"\n')
     scene = work / "scene.toml"
     scene.write_text("\n".join(lines))
     ra, dec = frame.radec(t["pos"])
-    tab = Table({"ra_deg": ra, "dec_deg": dec, "re_arcsec": t["re"], "mass_msun": t["mass"],
+    tab = Table({"ra_deg": ra, "dec_deg": dec, "re_arcsec": t["re"], "q": q, "mass_msun": t["mass"],
                  "age_myr": t["age"], "snr": np.sqrt(np.sum(np.square(snr), axis=0))})
     for k, (name, _, _, _) in enumerate(bands):
         tab[f"mag_{name}"] = zps[k] - 2.5 * np.log10(flux[:, k])
@@ -244,7 +251,8 @@ def _pulls(true: Table, fit: Table, names, pix):
         j = next((int(j) for j in np.argsort(d[i]) if d[i, j] <= MATCH_PIX and int(j) not in used), None)
         row = dict(recovered=j is not None, mag=float(true[f"mag_{names[0]}"][i]),
                    snr=float(true["snr"][i]),
-                   re_true=float(true["re_arcsec"][i]), mass_true=float(true["mass_msun"][i]))
+                   re_true=float(true["re_arcsec"][i]), q_true=float(true["q"][i]),
+                   mass_true=float(true["mass_msun"][i]))
         if j is not None:
             used.add(j)
             p = lambda col, tv: float((fit[col][j] - tv) / fit[f"{col}_err"][j])  # noqa: E731
@@ -266,6 +274,7 @@ def _pulls(true: Table, fit: Table, names, pix):
                 row["pull_mass"] = _skewed_pull(fit, j, "mass_msun", true["mass_msun"][i])
             row["flag"] = int(fit["flag"][j])
             row["re_fit"] = float(fit["re_arcsec"][j])
+            row["q_fit"] = float(fit["q"][j]) if "q" in fit.colnames else 1.0
         rows.append(row)
     # the false clumps' S/N: flux / σ per band, in quadrature (negative fluxes count as 0)
     unused = [j for j in range(len(fit)) if j not in used]
@@ -299,6 +308,10 @@ def main():
     ap.add_argument("--truth-oversampling", type=int, default=None,
                     help="the mock's drawing (default: --psf-oversampling)")
     ap.add_argument("--keep", default=None, help="work folder kept (files, scenes, fits)")
+    ap.add_argument("--clump-q-min", type=float, default=1.0,
+                    help="clumps' axis ratio uniform in [Q, 1] (default 1: round)")
+    ap.add_argument("--clump-shape", choices=("round", "elliptical"), default="round",
+                    help="the fit's [fit] clump_shape")
     args = ap.parse_args()
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="obs-pulls-"))
     results, t_all = [], time.time()
@@ -307,7 +320,8 @@ def main():
             work = root / f"{kind}-{seed}"
             work.mkdir(parents=True, exist_ok=True)
             scene, true, names, pix = _mock(kind, seed, work, args.psf_oversampling,
-                                            args.truth_oversampling, args.psf_sampling)
+                                            args.truth_oversampling, args.psf_sampling,
+                                            args.clump_q_min, args.clump_shape)
             t0 = time.time()
             done = work / "fit" / "summary.json"
             if done.is_file():    # --keep: a finished fit is evaluated again, not refitted
@@ -353,6 +367,7 @@ def main():
     write_json(args.name, payload)
     md = ["# `clumpylen fit` pulls on mocks in real-product formats (issue 17)\n",
           f"{machine()['date']}; {N_CLUMPS} clumps per mock, z = {Z}, clumps = \"auto\" (no truth), "
+          f"clumps' q in [{args.clump_q_min}, 1], fitted {args.clump_shape}, "
           f"psf_oversampling = {args.psf_oversampling} (mock drawn at "
           f"{args.truth_oversampling or args.psf_oversampling}), PSF images sampled "
           f"{args.psf_sampling}× finer than the pixels, "

@@ -368,3 +368,60 @@ def test_fit_factories_choose_the_renderer_from_the_clump_options():
     for opts, kind in ((FitOptions(clump_n=0.5), RoundGaussianClumps),
                        (FitOptions(clump_n=0.5, clump_shape="elliptical"), UnlensedClumps)):
         assert isinstance(make_model_factory([_Ob()], frame, opts)(src).clumps, kind)
+
+
+_MOCK_SCENE = """
+[scene]
+name = "round-or-not"
+seed = 3
+z_source = 2.0
+
+[source.bulge]
+magnitudes = {{ F200W = 24.0 }}
+re_arcsec = 0.1
+n = 1.0
+
+[source.clumps]
+catalog = "clumps.ecsv"
+sersic_n = 0.5
+q_range = {q_range}
+
+[render]
+source_pixel_arcsec = 0.01
+lens_pixel_arcsec = 0.01
+field_arcsec = {{ x = [-0.3, 0.3], y = [-0.3, 0.3] }}
+accuracy = "fast"
+
+[[bands]]
+instrument = "JWST/NIRCam"
+filter = "F200W"
+exptime_s = 1000.0
+psf = "none"
+"""
+
+
+def test_mock_fits_draw_clumps_round_only_where_the_scene_says_they_are(tmp_path):
+    """`clumpylen fit` on a mock: the scene's clump law (q_range), never its catalogue, says
+    whether clumps may be elliptical. q_range [1, 1]: the separable round renderer and no
+    shape moves; the default [0.3, 1]: the Sérsic stamps, and the shape moves try each clump
+    elliptical (fitted round, elliptical clumps' R_e pulls missed ±3 for 7 of 46,
+    benchmarks/results/unl5_round.md, unl5_shapes.md)."""
+    from astropy.table import Table
+
+    from clumpylen_jax import pipeline, scene as sc
+    from clumpylen_jax.inference import auto
+    from clumpylen_jax.inference.auto_run import make_model_factory, scene_options
+
+    Table({"beta1_arcsec": [0.05], "beta2_arcsec": [0.0], "re_arcsec": [0.02], "q": [1.0],
+           "pa_rad": [0.3], "mag_F200W": [25.0]}).write(tmp_path / "clumps.ecsv",
+                                                        format="ascii.ecsv")
+    for q_range, kind, round_clumps in (("[1.0, 1.0]", RoundGaussianClumps, True),
+                                        ("[0.3, 1.0]", UnlensedClumps, False)):
+        path = tmp_path / "scene.toml"
+        path.write_text(_MOCK_SCENE.format(q_range=q_range))
+        prep = pipeline.prepare(sc.load_scene(str(path)))
+        opts = scene_options(prep.scene).validate()
+        assert opts.round_clumps is round_clumps and opts.clump_n == 0.5
+        model = make_model_factory(prep, opts)(prep.source)
+        assert isinstance(model.clumps, kind)
+        assert auto._shape_moves(model, opts) is not round_clumps

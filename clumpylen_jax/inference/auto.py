@@ -142,6 +142,13 @@ class AutoOptions:
         16 in ln L short, flagged not converged); a fit that converges earlier stops there.
     fit_shape: also fit each clump's q and PA (else round: most clumps are unresolved, and
         q, PA of an unresolved clump are degenerate directions that slow every fit).
+    round_clumps: the clumps are known to be round (a scene whose clumps' q_range is
+        [1, 1]): no shape moves, and unlensed the separable round renderers
+        (`fit_clump_pixels`), 3-4 times faster. Else clumps are counted round and the
+        shape moves try each one elliptical: fitted round, an unlensed clump of q 0.5-0.7
+        came back with an R_e between its major axis and its circularised one, 7 of 46 R_e
+        pulls beyond 3 (unlensed seeds 0-7), none with the shape moves
+        (benchmarks/results/unl5_round.md, unl5_shapes.md).
     errors: Fisher errors and the catalogue table of the final fit. False: AutoFit.uncertainty
         and .table None, for a caller that refits from the optimum and makes its own
         (`observations.run.auto_starts`): one compiled program of the whole model fewer.
@@ -182,6 +189,7 @@ class AutoOptions:
     rtol: float = 1e-6
     max_steps: int = 100
     fit_shape: bool = False
+    round_clumps: bool = False
     errors: bool = True
     merge: bool = True
     final_shape: bool = True
@@ -213,6 +221,8 @@ class AutoOptions:
         require(isinstance(self.merge, (bool, np.bool_)), "fit.merge", self.merge, "true or false")
         require(isinstance(self.final_shape, (bool, np.bool_)), "fit.final_shape",
                 self.final_shape, "true or false")
+        require(isinstance(self.round_clumps, (bool, np.bool_)), "fit.round_clumps",
+                self.round_clumps, "true or false")
         require(isinstance(self.profile_errors, (bool, np.bool_)), "fit.profile_errors",
                 self.profile_errors, "true or false")
         require(self.diffuse_spacing_arcsec is None or (np.isfinite(self.diffuse_spacing_arcsec)
@@ -409,9 +419,9 @@ def _setup(make_model, data, variances, masks, host_start, lens, opts: AutoOptio
 
 
 def _shape_moves(model, opts: AutoOptions) -> bool:
-    """Whether `_refine` may make a round clump elliptical: merges on, clumps otherwise round,
-    and a renderer that draws q and PA (the separable round ones do not)."""
-    return bool(opts.merge and not opts.fit_shape
+    """Whether `_refine` may make a round clump elliptical: merges on, clumps otherwise round
+    but not known to be, and a renderer that draws q and PA (the separable round ones do not)."""
+    return bool(opts.merge and not opts.fit_shape and not opts.round_clumps
                 and getattr(model.accuracy, "clump_pixels", "sersic") == "sersic")
 
 

@@ -25,8 +25,8 @@ from .auto import AutoOptions, fit_clump_pixels, fit_without_truth, lensed_fit_a
 
 def make_model_factory(prep, options: AutoOptions):
     """make_model(source) for `fit_without_truth` with `options` on the scene's bands, lens
-    and detector grids (round n = 0.5 or n = 1 clumps of an unlensed scene: the separable
-    Gaussian-mixture renderer, `fit_clump_pixels`)."""
+    and detector grids (n = 0.5 or n = 1 clumps of an unlensed scene known to be round,
+    `AutoOptions.round_clumps`: the separable Gaussian-mixture renderer, `fit_clump_pixels`)."""
     from ..model import build_model
 
     grids = [lay.grid for lay in prep.model.layouts]
@@ -37,7 +37,7 @@ def make_model_factory(prep, options: AutoOptions):
     # Gaussian clumps through a lens: averaged over each ray's cell, not point-sampled (a thin
     # clump aliased at 2 rays per lens pixel, and the fits ran to such shapes: issue 18)
     acc = dataclasses.replace(acc, clump_pixels=fit_clump_pixels(
-        options.clump_n, not options.fit_shape, prep.lens is not None),
+        options.clump_n, options.round_clumps and not options.fit_shape, prep.lens is not None),
         ray_footprint=prep.lens is not None and float(options.clump_n) == 0.5)
 
     render = prep.scene.render
@@ -68,7 +68,9 @@ def run_auto_fit(prep, images, variances=None, *, out_dir=None, options=None):
 
 
 def scene_options(scene) -> AutoOptions:
-    """The fit's options from the scene: its clumps' Sérsic index and its seed.
+    """The fit's options from the scene: its clumps' Sérsic index, whether its clumps are
+    round (q_range [1, 1]: `AutoOptions.round_clumps`) and its seed: the population's law,
+    never its draw.
 
     Clumps are counted round through a lens too: fitting q and PA for all of them
     (`AutoOptions.fit_shape`) was tried on the SIS recovery scene
@@ -79,7 +81,8 @@ def scene_options(scene) -> AutoOptions:
     refit frees every kept clump's shape (`AutoOptions.final_shape`, on)."""
     cl = getattr(scene.source, "clumps", None)
     n = getattr(cl, "sersic_n", AutoOptions.clump_n) if cl is not None else AutoOptions.clump_n
-    return AutoOptions(clump_n=float(n), seed=int(scene.seed))
+    q_lo = cl.q_range[0] if cl is not None else 0.0
+    return AutoOptions(clump_n=float(n), round_clumps=bool(q_lo >= 1.0), seed=int(scene.seed))
 
 
 def write_auto_fit(fit, images, variances, out_dir) -> list:
