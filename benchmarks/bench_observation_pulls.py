@@ -188,7 +188,9 @@ def _mock(kind, seed, work: Path, psf_oversampling: int = 1, truth_oversampling=
                    clumps=Clumps(center_arcsec=f(t["pos"]), flux=f(flux), re_arcsec=f(t["re"]),
                                  n=f(np.ones(N_CLUMPS)), q=f(q), pa_rad=f(pa)))
     psfs = [load_psf_fits(_psf_file(work / f"psf_{name}.fits", pix, sampling=psf_sampling)) for name, _, pix, _ in bands]
-    opts = FitOptions(clump_n=1.0, psf_oversampling=truth_oversampling or psf_oversampling)
+    # elliptical clumps need the Sérsic renderer (the round ones ignore q and PA)
+    opts = FitOptions(clump_n=1.0, clump_shape="elliptical" if clump_q_min < 1 else "round",
+                      psf_oversampling=truth_oversampling or psf_oversampling)
     model = make_model_factory([_Ob(b[0], p) for b, p in zip(bands, psfs)], frame, opts)(truth)
     images = [np.asarray(i) for i in model.band_images(truth)]
     for k, dr in enumerate(turn):

@@ -45,12 +45,12 @@ from ..inference.transforms import IDENTITY, LOG, Transform
 from ..inference.uncertainty import Uncertainty, covariance_from_fisher_u, fisher_uncertainty
 from ..model import Accuracy, Band, build_model
 from ..source import Clumps, Sersic, Source
-from ..inference.auto import fit_clump_pixels
+from ..inference.auto import CLUMP_Q_RANGE, SHAPE_START_Q, fit_clump_pixels
 from ..inference.lm import lm_fit
 
 HOST_N = (0.3, 8.0)          # host Sérsic index range
 HOST_Q_MIN = 0.08            # thinnest host (an arc seen edge-on is thin)
-CLUMP_Q_MIN = 0.2
+CLUMP_Q_MIN = CLUMP_Q_RANGE[0]
 POSITION_BOX_PIXELS = 3.0   # clump centres stay within this many finest pixels of their start
 RESIDUAL_BOX = 2             # half-side (pixels) of the box whose residual starts a clump's flux
 
@@ -142,13 +142,23 @@ def host_within_bounds(host: Sersic, frame, options) -> Sersic:
                   center_arcsec=f(host.center_arcsec))
 
 
-def _clumps(centers, flux, re, options) -> Optional[Clumps]:
+def _clumps(centers, flux, re, options, q=None, pa_rad=None) -> Optional[Clumps]:
+    """Round clumps, or elliptical ones (`options.clump_shape`) at q, pa_rad: the starts'
+    (the automatic stage's shape moves) or, without them, q = SHAPE_START_Q and PA 0. q is
+    kept just inside its bounds: a bounded transform has no inverse on its edge, and at
+    q = 1 the PA has no gradient."""
     n = len(centers)
     if n == 0:
         return None
     f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    if options.clump_shape == "round":
+        q, pa_rad = np.ones(n), np.zeros(n)
+    else:
+        q = np.clip(np.full(n, SHAPE_START_Q) if q is None else np.asarray(q, float),
+                    CLUMP_Q_MIN + 1e-3, 1.0 - 1e-3)
+        pa_rad = np.zeros(n) if pa_rad is None else np.asarray(pa_rad, float)
     return Clumps(center_arcsec=f(np.reshape(centers, (n, 2))), flux=f(flux), re_arcsec=f(re),
-                  n=f(np.full(n, options.clump_n)), q=f(np.ones(n)), pa_rad=f(np.zeros(n)))
+                  n=f(np.full(n, options.clump_n)), q=f(q), pa_rad=f(pa_rad))
 
 
 def make_model_factory(observations, frame, options):
@@ -296,7 +306,8 @@ def _clump_fluxes(observations, frame, centers, mu):
 
 def fit_observations(observations, frame, options, clump_starts=None, *, solver="lm") -> ObservedFit:
     """Fit host + clumps to the observations (see the module doc). clump_starts: dict with
-    "phi" [N, 2] (fit-frame arcsec) and optional "re_arcsec" [N], or None for none."""
+    "phi" [N, 2] (fit-frame arcsec) and optional "re_arcsec", "q", "pa_rad" [N] (`auto_starts`
+    adds the counting's fluxes, host, background and model), or None for none."""
     t_start, c_start = time.perf_counter(), time.process_time()
     timings, steps = {}, []
     make_model = make_model_factory(observations, frame, options)
@@ -334,7 +345,8 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
         re0 = np.clip(re0, options.clump_re_min_arcsec * 1.01, options.clump_re_max_arcsec * 0.99)
         flux0 = (np.asarray(clump_starts["flux"], float).reshape(n, nb)
                  if clump_starts.get("flux") is not None else _clump_fluxes(observations, frame, phi, mu))
-        src = Source(bulge=host, clumps=_clumps(phi, flux0, re0, options))
+        src = Source(bulge=host, clumps=_clumps(phi, flux0, re0, options, clump_starts.get("q"),
+                                                clump_starts.get("pa_rad")))
     else:
         src = Source(bulge=host)
     t0 = time.perf_counter()
