@@ -92,8 +92,8 @@ def auto_starts(observations, frame, scene):
     # and for the same reason one final start, unperturbed (`AutoOptions.final_starts`)
     wanted = dict(max_clumps=opts.max_clumps, re_max_arcsec=opts.clump_re_max_arcsec,
                   clump_n=opts.clump_n, seed=scene.seed, max_steps=opts.max_steps, errors=False,
-                  final_starts=1,
-                  merge=opts.clump_shape == "elliptical", rtol=AUTO_RTOL, diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec,
+                  final_starts=1, merge=opts.clump_shape == "elliptical", rtol=AUTO_RTOL,
+                  diffuse_spacing_arcsec=opts.diffuse_spacing_arcsec,
                   host_re_range_arcsec=None if opts.diffuse_spacing_arcsec is None
                   else host_re_bounds(frame, opts.diffuse_spacing_arcsec),
                   host=opts.host == "sersic")
