@@ -145,6 +145,10 @@ def test_three_clumps_found_from_a_generic_start():
     assert fit.steps[4]["action"] in ("reject", "stop")
     assert np.all(np.isfinite(t["flux_B0_err"])) and np.all(t["flux_B0_err"] > 0)
     assert "flag" in t.colnames and "blend_corr" in t.colnames
+    # an R_e upper limit (size_limits) where, and only where, the size is unresolved
+    ul, unresolved = np.asarray(t["re_arcsec_ul"]), (t["flag"] & auto.FLAGS["size_unresolved"]) > 0
+    assert np.array_equal(np.isfinite(ul), unresolved)
+    assert np.all(ul[unresolved] > np.asarray(t["re_arcsec"])[unresolved])
 
 
 @pytest.mark.slow

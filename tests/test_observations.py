@@ -664,6 +664,66 @@ def test_an_elliptical_clump_fitted_elliptical_gets_its_shape(tmp_path):
     assert abs(dpa) < max(3 * err["clumps.pa_rad[0]"], 0.05), (pa, err)
 
 
+def test_an_unresolved_clump_has_finite_errors_and_a_size_upper_limit(tmp_path):
+    """A point source (R_e 0.2 px under a PSF of σ 1.2 px, S/N ~18) started at R_e = 1 px:
+    R_e runs to its lower bound. There the LM once pushed u to −446 (dx/du 1e-196), JᵀJ
+    underflowed, and the flux and position errors came back as 3500 and 78″; now the flux
+    error is the point source's. Its size is flagged unresolved, and the upper limit from
+    χ² profiled over the flux is where refitting everything else with R_e held there
+    costs Δχ² between 2 and 2.706 (2.706 if nothing but the flux moved)."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from clumpylen_jax.inference.size_limits import DELTA_CHI2_UL, re_upper_limit
+    from clumpylen_jax.observations import FitOptions
+    from clumpylen_jax.observations.config import load_observation_scene
+    from clumpylen_jax.observations.fit import (_clumps, fit_observations, free_parameters,
+                                                make_model_factory, run_stage)
+    from clumpylen_jax.observations.run import read_scene_data
+    from clumpylen_jax.source import Clumps, Source
+
+    pix, shape, sigma, psf_sigma = 0.03, (32, 32), 0.01, 1.2
+    f = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731
+    truth = Source(clumps=Clumps(center_arcsec=f([[0.01, -0.02]]), flux=f([[1.0]]),
+                                 re_arcsec=f([0.2 * pix]), n=f([1.0]), q=f([1.0]),
+                                 pa_rad=f([0.0])))
+    noise = np.random.default_rng(1).normal(0, sigma, shape)
+    path = write_cutout(tmp_path / "c.fits", noise, np.full(shape, sigma), extra={"PIXSCALE": pix})
+    psf = gaussian_psf_file(tmp_path / "psf.fits", psf_sigma, 15, pix)
+    scene = load_observation_scene(_scene(tmp_path, [{"filter": "F150W", "image": path,
+                                                      "psf": psf}],
+                                          fit='host = "none"\nclumps = "none"\n'))
+    obs, frame = read_scene_data(scene)
+    opts = FitOptions(host="none", clumps="none", clump_re_max_arcsec=0.2, clump_n=1.0)
+    make_model = make_model_factory(obs, frame, opts)
+    obs = [dataclasses.replace(obs[0], data=np.asarray(make_model(truth).band_images(truth)[0])
+                               + noise)]
+    fit = fit_observations(obs, frame, opts, {"phi": np.array([[0.0, 0.0]]),
+                                              "re_arcsec": np.array([pix])})
+    assert fit.success
+    err = dict(zip(fit.uncertainty.labels, np.asarray(fit.uncertainty.err)))
+    # a point source's flux error: σ / √(Σ P²), P the PSF's pixels summing to 1
+    p = fits.getdata(psf)
+    p = p / p.sum()
+    point = sigma / np.sqrt(np.sum(p * p))
+    assert point < err["clumps.flux[0,0]"] < 1.6 * point, (err, point)
+    assert err["clumps.center_arcsec[0,0]"] < 0.2 * pix, err
+    re = float(fit.state.source.clumps.re_arcsec[0])
+    assert err["clumps.re_arcsec[0]"] > re                              # flag 16
+    model, state = fit.drawing()
+    ul = re_upper_limit(model, fit.data, state, 0, opts.clump_re_max_arcsec)
+    assert re < 0.2 * pix < ul < psf_sigma * pix, (re, ul)
+    held = Source(clumps=_clumps(np.asarray(fit.state.source.clumps.center_arcsec),
+                                 np.asarray(fit.state.source.clumps.flux), [ul], opts))
+    free = free_parameters(held, frame, opts)
+    free.pop("clumps.re_arcsec")
+    steps = []
+    run_stage("held", make_model(held), obs, held, free, steps)
+    rise = steps[-1]["chi2"] - fit.steps[-1]["chi2"]
+    assert 2.0 < rise <= DELTA_CHI2_UL * 1.01, rise
+
+
 # ----------------------------------------------------------------------------- lens models
 
 FIX = __import__("pathlib").Path(__file__).resolve().parents[1] / "fixtures"

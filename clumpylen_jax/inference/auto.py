@@ -56,6 +56,7 @@ from .catalog import fit_table, host_meta
 from .likelihood import chi2_and_images, make_data
 from .params import (Free, FitState, Parametrization, entry_kinds, make_state, parametrize,
                      take_rows)
+from .size_limits import re_upper_limit
 from .transforms import Transform
 from .uncertainty import Uncertainty, covariance_from_fisher_u
 
@@ -82,8 +83,8 @@ FINAL_START_SIGMA = 3.0
 FINAL_START_MAX_U = 0.1
 LOG = logging.getLogger(__name__)
 # the `flag` bits of fit.ecsv, for mock-image and observation fits alike; "size_unresolved":
-# σ(R_e) > R_e, the data do not measure the size (a clump far below the PSF): R_e is then at
-# most R_e + 2σ, and q and PA are unmeasured too
+# σ(R_e) > R_e, the data do not measure the size (a clump far below the PSF): the table's
+# `re_arcsec_ul` bounds it (`size_limits`), and q and PA are unmeasured too
 FLAGS = {"not_converged": 1, "re_at_bound": 2, "position_at_box_edge": 4,
          "unstable_across_starts": 8, "size_unresolved": 16, "shape_degenerate": 32,
          "host_alternative": 64}
@@ -1259,6 +1260,12 @@ def _table(ctx, state, unc, idx, ok, spread, n_images, zeropoints_ab, prof=None)
                            FLAGS["size_unresolved"], 0)
     flag = flag | np.where(spread[0][idx] > np.maximum(3 * beta_err, 1e-9),
                            FLAGS["unstable_across_starts"], 0)
+    # unresolved: the Fisher σ says nothing; the profile of χ² in R_e bounds it above
+    ul = np.full(len(idx), np.nan)
+    for row in np.nonzero(flag & FLAGS["size_unresolved"])[0]:
+        ul[row] = re_upper_limit(ctx.model, ctx.data, state, int(idx[row]), re_hi)
+    t.add_column(ul, name="re_arcsec_ul", index=t.colnames.index("re_arcsec_err") + 1)
+    t["re_arcsec_ul"].unit = "arcsec"
     corr, partner = _blends(unc, ctx.param.labels, idx)
     t["flag"] = flag.astype(int)
     t["n_images"] = n_images[idx]

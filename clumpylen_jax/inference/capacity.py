@@ -47,7 +47,7 @@ FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 def _solve(model, data, param, u0, active, rtol, max_steps):
     resid_held = held_residuals(model, data, param, active=active)
     r = levenberg_marquardt(lambda u: resid_held(u, 0), u0, max_steps, rtol,
-                            blockwise(resid_held, part_blocks(param)))
+                            blockwise(resid_held, part_blocks(param)), u_limits=param.u_limits())
     return r.u, -0.5 * r.chi2, r.success, r.n_steps
 
 
@@ -227,7 +227,9 @@ def _solve_local(model, data, param, u, idx, slots, active, rtol, max_steps, n_h
                                      held_light(model, param.state(u), slots, active), n_host,
                                      chunk, kinds)
     v0 = u.at[idx].get(mode="fill", fill_value=0.0)
-    r = levenberg_marquardt(residual, v0, max_steps, rtol, normal=normal)
+    lo, hi = (jnp.asarray(a).at[idx].get(mode="fill", fill_value=f)
+              for a, f in zip(param.u_limits(), (-jnp.inf, jnp.inf)))
+    r = levenberg_marquardt(residual, v0, max_steps, rtol, normal=normal, u_limits=(lo, hi))
     return u.at[idx].set(r.u, mode="drop"), -0.5 * r.chi2, r.success, r.n_steps, r.jtj
 
 

@@ -209,7 +209,7 @@ def held_residuals(scene_model, data, param, active=None):
 
 
 def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
-                        r_and_j=None, normal=None) -> LMResult:
+                        r_and_j=None, normal=None, u_limits=None) -> LMResult:
     """Minimise |resid(u)|² over u from u0 (module doc). Traceable (under vmap its branch on
     acceptance runs both sides: `capacity.solve_batch` maps starts one after the other).
     resid decides each trial (it should cost one model evaluation); the linearisation is
@@ -218,7 +218,10 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
     r_and_j: u ↦ (resid(u), Jacobian) when given (`blockwise`), else one jacfwd of resid.
     normal: u ↦ (resid(u), JᵀJ, Jᵀr) instead of r_and_j, for a caller that builds the normal
     equations by blocks without one J (`capacity.solve_local_batch`); the result's
-    jacobian is then None."""
+    jacobian is then None. u_limits: (lo, hi) [n] each trial is clipped to
+    (`Parametrization.u_limits`: where JᵀJ in u keeps the Fisher matrix in x), or None."""
+    lo, hi = (jnp.asarray(a, u0.dtype) for a in
+              ((-jnp.inf, jnp.inf) if u_limits is None else u_limits))
     lin = (lambda u: (*normal(u), None)) if normal is not None else \
         _normal_of_jacobian(r_and_j or _jacfwd(resid))
 
@@ -226,7 +229,7 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
     r_shape = jax.eval_shape(resid, u0)
     zero_j = None if normal is not None else jnp.zeros((int(np.prod(r_shape.shape)), n), u0.dtype)
     init = dict(u=u0, H=jnp.zeros((n, n), u0.dtype), g=jnp.zeros(n, u0.dtype), J=zero_j,
-                chi2=jnp.asarray(jnp.inf, u0.dtype), trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype),
+                chi2=jnp.asarray(jnp.inf, u0.dtype), trial=jnp.clip(u0, lo, hi), lam=jnp.asarray(LAMBDA0, u0.dtype),
                 step=jnp.asarray(0), done=jnp.asarray(False), ok=jnp.asarray(False))
 
     def cond(s):
@@ -244,7 +247,7 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
         H, g, J = jax.lax.cond(accept, lambda: lin(s["trial"])[1:],
                                lambda: (s["H"], s["g"], s["J"]))
         lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
-        trial, _ = _propose(u, H, g, lam)
+        trial = jnp.clip(_propose(u, H, g, lam)[0], lo, hi)
         stuck = lam > LAMBDA_MAX
         # stuck at the largest damping: converged only if a full Gauss–Newton step would
         # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
@@ -266,4 +269,4 @@ def lm_fit(scene_model, data, param, u0, max_steps: int = 200, rtol: float = RTO
     kinds = entry_kinds(param, np.arange(param.size))
     return levenberg_marquardt(lambda u: resid_held(u, 0), u0, max_steps, rtol,
                                blockwise(resid_held, part_blocks(param), kinds,
-                                         band_of_residuals(data)))
+                                         band_of_residuals(data)), u_limits=param.u_limits())

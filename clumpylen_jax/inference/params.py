@@ -310,6 +310,12 @@ class Parametrization(eqx.Module):
         """u of `state` (default: the template): the usual optimiser start."""
         return self.unconstrained_vector(self.physical_of_state(state))
 
+    def u_limits(self) -> tuple:
+        """(lo, hi) numpy [size]: the range of each entry of u (`Transform.u_range`)."""
+        lo = [np.full(l.size, l.transform.u_range()[0]) for l in self.leaves]
+        hi = [np.full(l.size, l.transform.u_range()[1]) for l in self.leaves]
+        return (np.concatenate(lo), np.concatenate(hi)) if lo else (np.zeros(0), np.zeros(0))
+
     def scatter(self, values, fill=np.nan):
         """A FitState-shaped pytree holding `values` (layout of u) at free entries, `fill` elsewhere.
 

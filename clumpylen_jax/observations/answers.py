@@ -7,6 +7,8 @@ propagated linearly):
   `theta2_arcsec` (DESIGN.md θ frame, relative to the first observation's centre),
   `ra_deg`, `dec_deg` where there is a celestial WCS;
 - `re_arcsec` (observed; intrinsic where a local lens is given), `re_pc` with z_source;
+  where the size is unresolved (flag 16), `re_arcsec_ul` (and `re_pc_ul`), its one-sided
+  95 % upper limit from the profile of χ² in R_e (`inference.size_limits`), NaN elsewhere;
 - `flux_<F>` (data units summed), `mag_<F>` (observed AB). A band where
   flux/σ < detection_snr does not detect the clump: `mag_<F>` is then the upper
   limit ZP − 2.5 log10(max(F, 0) + snr·σ), `mag_<F>_err` NaN and `uplim_<F>` true;
@@ -27,7 +29,7 @@ propagated linearly):
 - `flag` (bits of `inference.auto.FLAGS`, as in mock-image fits): 0 fine; 1 the fit did
   not converge (sampled: R̂ of one of the clump's parameters above `sample.RHAT_MAX`); 2
   the R_e hit a prior bound; 4 the clump sits within a pixel of the field's edge; 16 the
-  size is unresolved (σ(R_e) > R_e: read R_e as an upper limit); 64 the counting found the
+  size is unresolved (σ(R_e) > R_e: read `re_arcsec_ul`); 64 the counting found the
   host's light shared otherwise nearly as well (`clumps = "auto"`: a host move rejected for
   its extra clump only) with this clump's flux > 2σ away or gone: its magnitude holds a
   systematic error its σ does not (`inference.auto.FLAGS`);
@@ -111,19 +113,24 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
     # columns are added in fit.ecsv's order: positions, sizes, shapes, photometry, masses, flag
     pix, theta, th_cov = _position_columns(t, frame, phi, cov, idx)
     re_err = np.array([_param_err(cov, idx, f"clumps.re_arcsec[{i}]") for i in range(n)])
+    unresolved = re_err > re
+    re_ul = _re_upper_limits(fit, unresolved, opts.clump_re_max_arcsec)
     pa_theta = np.array([frame.pa_theta(phi[i], pa[i])[0] for i in range(n)])
     mu = None
     if lens is not None:
         from .lens import source_plane
         sp = source_plane(lens, theta)
         mu = np.abs(sp.mu)
+        re_obs = re
         re, re_err, b_cov = _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta)
+        t["re_obs_arcsec_ul"] = re_ul
+        re_ul = re_ul * re / re_obs          # through each clump's A, as R_e itself
         from .multiple_images import group_images
         sid = group_images(sp.beta, b_cov, sp.mu, theta, opts.image_match_arcsec,
                            opts.image_separation_min_arcsec)
         t["source_id"] = sid
         t["n_images"] = np.bincount(sid)[sid]
-    _size_columns(t, re, re_err, scene)
+    _size_columns(t, re, re_err, re_ul, scene)
     if opts.clump_shape == "elliptical":
         t["q"] = q
         t["q_err"] = [_param_err(cov, idx, f"clumps.q[{i}]") for i in range(n)]
@@ -144,7 +151,7 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
         alt, alt_flux = host_alternative_fluxes(phi, flux, f_err, np.asarray(cl.re_arcsec, float),
                                                 alternatives, 2.0 * finest)
         _alternative_columns(t, alt_flux, observations)
-    t["flag"] = _flags(fit, frame, pix, opts, re_err > re, alt)
+    t["flag"] = _flags(fit, frame, pix, opts, unresolved, alt)
     return t
 
 
@@ -198,15 +205,28 @@ def _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta):
     return np.array([s[0] for s in src]), re_err * scale, b_cov
 
 
-def _size_columns(t, re, re_err, scene):
-    """Add R_e [arcsec] and, with z_source, R_e [pc]."""
+def _re_upper_limits(fit, unresolved, re_max_arcsec):
+    """[N] observed R_e upper limits [arcsec] of the unresolved clumps, NaN elsewhere."""
+    from ..inference.size_limits import re_upper_limit
+    out = np.full(len(unresolved), np.nan)
+    if np.any(unresolved):
+        model, state = fit.drawing()
+        for i in np.nonzero(unresolved)[0]:
+            out[i] = re_upper_limit(model, fit.data, state, int(i), re_max_arcsec)
+    return out
+
+
+def _size_columns(t, re, re_err, re_ul, scene):
+    """Add R_e [arcsec] with its error and upper limit and, with z_source, the same in pc."""
     t["re_arcsec"] = re
     t["re_arcsec_err"] = re_err
+    t["re_arcsec_ul"] = re_ul
     if scene.z_source is not None:
         from ..cosmology import arcsec_per_pc, make_cosmology
         app = arcsec_per_pc(scene.z_source, make_cosmology(*scene.cosmology))
         t["re_pc"] = re / app
         t["re_pc_err"] = re_err / app
+        t["re_pc_ul"] = re_ul / app
 
 
 def _photometry_columns(t, flux, f_err, observations, detection_snr, mu):

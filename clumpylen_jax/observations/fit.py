@@ -72,6 +72,13 @@ class ObservedFit:
     # per clump, True where a sampler's chains did not mix (R̂ above sample.RHAT_MAX for one
     # of its parameters): flag bit 1, as a fit that did not converge; None after a MAP fit
     clump_unconverged: Optional[np.ndarray] = None
+    # (model, clump capacity) of the counting whose compiled program draws the result
+    # (`_chi2`), or None: `model` draws it
+    render: Optional[tuple] = None
+
+    def drawing(self):
+        """(model, state) that draw this fit's light with a program compiled already."""
+        return _drawing(self.model, self.state, self.render)
 
 
 def bands_for(observations, frame) -> list:
@@ -228,15 +235,21 @@ def _padded(state, n_rows: int):
                        eqx.tree_at(lambda c: c.flux, rows, jnp.asarray(flux)))
 
 
+def _drawing(model, state, render):
+    """(model, state): the counting's model with the state padded to its capacity by dark
+    clumps where `render` (model, capacity) holds it (`_chi2`), else (model, state)."""
+    if render is not None and state.source.clumps is not None and \
+            0 < state.source.clumps.count <= render[1]:
+        return render[0], _padded(state, render[1])
+    return model, state
+
+
 def _chi2(model, data, state, render=None):
     """(χ² per band, μ per band with the fitted diffuse light, numpy) from one compiled
     program (`likelihood.chi2_and_images`; op by op, ~260 one-op compiles). render: (model,
-    clump capacity) of the automatic stage, or None: the state is then drawn by the
-    counting's model padded to its capacity with dark clumps, a program compiled already
-    (the same factory and bands: the same light, to rounding)."""
-    if render is not None and state.source.clumps is not None and \
-            0 < state.source.clumps.count <= render[1]:
-        model, state = render[0], _padded(state, render[1])
+    clump capacity) of the automatic stage or None (`_drawing`): the counting's program
+    is compiled already, and its model draws the same light (the same factory and bands)."""
+    model, state = _drawing(model, state, render)
     chi2, images = chi2_and_images(model, data, state)
     return [float(c) for c in chi2], [np.asarray(m) for m in images]
 
@@ -371,4 +384,4 @@ def fit_observations(observations, frame, options, clump_starts=None, *, solver=
     timings["cpu_total"] = time.process_time() - c_start
     return ObservedFit(model, data, param, res.state, unc, tuple(mu_new),
                        all(s["success"] for s in steps), steps,
-                       {k: round(v, 3) for k, v in timings.items()}, n)
+                       {k: round(v, 3) for k, v in timings.items()}, n, render=render)
