@@ -29,6 +29,12 @@ entry is damped by at least DAMPING_FLOOR, one unit of Fisher information in u (
 residuals are whitened, so JᵀJ is the Fisher matrix; an entry with less has σ(u) > 1, the
 data hardly constrain it): such an entry takes a vanishing step, a constrained one
 (Jᵢ² ≫ 1) is damped as before, and the steps near the minimum (λ → 0) are unchanged.
+
+Each entry of u stays within its transform's range (`Transform.u_range`, the u its inverse
+gives): an entry at its limit that the step would take beyond it is held for that step
+(`_propose`). Unbounded, a bounded parameter pushed to its bound ran on in u (an
+unresolved clump's R_e to u = −446, dx/du 1e-196) until JᵀJ underflowed, and the errors
+of every parameter of that clump came out wrong (`uncertainty.covariance_from_fisher_u`).
 """
 
 from __future__ import annotations
@@ -60,11 +66,19 @@ class LMResult(eqx.Module):
     success: jnp.ndarray
 
 
-def _propose(u, H, g, lam):
+def _propose(u, H, g, lam, lo, hi):
+    """(trial, step) from u: the damped Gauss–Newton step over the entries free to move, the
+    trial clipped to [lo, hi]. An entry at a limit whose descent points beyond it is held
+    (its row and column out of the solve: a projected step); clipped after the solve
+    instead, it kept the coupled entries' steps from being right, and the pulls mocks' fits
+    took twice as long with other clumps found (`results/pulls_ulim_clip.md`)."""
+    free = ~(((u <= lo) & (g > 0)) | ((u >= hi) & (g < 0)))
+    H = jnp.where(free[:, None] & free[None, :], H, 0.0)
+    g = jnp.where(free, g, 0.0)
     d = jnp.maximum(jnp.diag(H), DAMPING_FLOOR)
     delta = jnp.linalg.solve(H + lam * jnp.diag(d), -g)
-    delta = jnp.where(jnp.isfinite(delta), delta, 0.0)
-    return u + delta, delta
+    delta = jnp.where(jnp.isfinite(delta) & free, delta, 0.0)
+    return jnp.clip(u + delta, lo, hi), delta
 
 
 def _normal_of_jacobian(r_and_j):
@@ -229,7 +243,8 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
     r_shape = jax.eval_shape(resid, u0)
     zero_j = None if normal is not None else jnp.zeros((int(np.prod(r_shape.shape)), n), u0.dtype)
     init = dict(u=u0, H=jnp.zeros((n, n), u0.dtype), g=jnp.zeros(n, u0.dtype), J=zero_j,
-                chi2=jnp.asarray(jnp.inf, u0.dtype), trial=jnp.clip(u0, lo, hi), lam=jnp.asarray(LAMBDA0, u0.dtype),
+                chi2=jnp.asarray(jnp.inf, u0.dtype), trial=jnp.clip(u0, lo, hi),
+                lam=jnp.asarray(LAMBDA0, u0.dtype),
                 step=jnp.asarray(0), done=jnp.asarray(False), ok=jnp.asarray(False))
 
     def cond(s):
@@ -247,11 +262,11 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
         H, g, J = jax.lax.cond(accept, lambda: lin(s["trial"])[1:],
                                lambda: (s["H"], s["g"], s["J"]))
         lam = jnp.where(accept, s["lam"] / 3.0, s["lam"] * 4.0)
-        trial = jnp.clip(_propose(u, H, g, lam)[0], lo, hi)
+        trial, _ = _propose(u, H, g, lam, lo, hi)
         stuck = lam > LAMBDA_MAX
         # stuck at the largest damping: converged only if a full Gauss–Newton step would
         # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
-        _, gn = _propose(u, H, g, LAMBDA_GN)
+        _, gn = _propose(u, H, g, LAMBDA_GN, lo, hi)
         at_min = -2.0 * jnp.dot(g, gn) < DECREMENT_TOL
         return dict(u=u, H=H, g=g, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
                     done=small | stuck, ok=small | (stuck & at_min))
