@@ -276,6 +276,7 @@ def _pulls(true: Table, fit: Table, names, pix):
                 row["pull_mass"] = _skewed_pull(fit, j, "mass_msun", true["mass_msun"][i])
             row["flag"] = int(fit["flag"][j])
             row["re_fit"] = float(fit["re_arcsec"][j])
+            row["re_ul"] = float(fit["re_arcsec_ul"][j])     # NaN unless flag 16
             row["q_fit"] = float(fit["q"][j]) if "q" in fit.colnames else 1.0
         rows.append(row)
     # the false clumps' S/N: flux / σ per band, in quadrature (negative fluxes count as 0)
@@ -407,6 +408,13 @@ def main():
     for k, s in payload["summary"]["without_host_alternative"].items():
         md.append(f"| {k[5:]} | {s['n']} | {s['mean']:+.2f} | {s['std']:.2f} | "
                   f"{s['within1']:.2f} | {s['within2']:.2f} | {s['within3']:.2f} |")
+    # flag 16: the size unresolved; is the true R_e below the fit's 95 % upper limit?
+    unres = [r for r in allrows if r.get("flag", 0) & FLAGS["size_unresolved"]]
+    md += ["", f"Flag 16 (size unresolved) on {len(unres)} of {len(allrows)} recovered clumps; "
+           f"true R_e below `re_arcsec_ul` (one-sided 95 %) for "
+           f"{sum(r['re_true'] < r['re_ul'] for r in unres)}/{len(unres)}" + "".join(
+               f"; S/N {r['snr']:.0f}: true {r['re_true'] * 1e3:.1f} mas, limit {r['re_ul'] * 1e3:.1f}"
+               for r in unres) + "."]
     write_text(f"{args.name}.md", "\n".join(md) + "\n")
     print("\n".join(md))
 

@@ -31,7 +31,9 @@ data hardly constrain it): such an entry takes a vanishing step, a constrained o
 (Jᵢ² ≫ 1) is damped as before, and the steps near the minimum (λ → 0) are unchanged.
 
 An entry of u that ends beyond its transform's range (`Transform.u_range`, the u its
-inverse gives; u_limits) is brought back to it and the linearisation is made again there.
+inverse gives; u_limits) is brought back to it by one more step, whose linearisation
+(made in the loop: a second copy of the Jacobian after it took S1063's compile from 25 to
+44 s) is what the errors come from; `success` is the fit's before that step.
 A bounded parameter pushed to its bound runs on in u (an unresolved clump's R_e reached
 u = −446, dx/du 1e-196) until JᵀJ underflows, and the errors of every parameter of that
 clump came out wrong (`uncertainty.covariance_from_fisher_u`). Holding such entries during
@@ -239,19 +241,22 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
     zero_j = None if normal is not None else jnp.zeros((int(np.prod(r_shape.shape)), n), u0.dtype)
     init = dict(u=u0, H=jnp.zeros((n, n), u0.dtype), g=jnp.zeros(n, u0.dtype), J=zero_j,
                 chi2=jnp.asarray(jnp.inf, u0.dtype), trial=u0, lam=jnp.asarray(LAMBDA0, u0.dtype),
-                step=jnp.asarray(0), done=jnp.asarray(False), ok=jnp.asarray(False))
+                step=jnp.asarray(0), done=jnp.asarray(False), ok=jnp.asarray(False),
+                back=jnp.asarray(False))
 
     def cond(s):
-        return (s["step"] < max_steps) & ~s["done"]
+        return ((s["step"] < max_steps) | s["back"]) & ~s["done"]
 
     def body(s):
         # the residuals alone decide the trial; the Jacobian is made only where it is
-        # accepted (a rejected trial costs one model evaluation, not its derivatives)
+        # accepted (a rejected trial costs one model evaluation, not its derivatives).
+        # A trial that brings u back within its limits ("back", module doc) is taken
+        # whatever its χ², for its linearisation: the one the errors are made from
         c_t = jnp.sum(resid(s["trial"]) ** 2)
-        accept = jnp.isfinite(c_t) & (c_t <= s["chi2"])
+        accept = jnp.isfinite(c_t) & ((c_t <= s["chi2"]) | s["back"])
         # converged: a step close to Gauss–Newton (not one shrunk by a large λ after
         # rejections, which gains little anywhere) that gained almost nothing
-        small = accept & (s["chi2"] - c_t <= rtol * c_t) & (s["lam"] <= 1.0)
+        small = accept & ~s["back"] & (s["chi2"] - c_t <= rtol * c_t) & (s["lam"] <= 1.0)
         u, chi2 = jnp.where(accept, s["trial"], s["u"]), jnp.where(accept, c_t, s["chi2"])
         H, g, J = jax.lax.cond(accept, lambda: lin(s["trial"])[1:],
                                lambda: (s["H"], s["g"], s["J"]))
@@ -262,18 +267,15 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
         # gain < DECREMENT_TOL in χ² (at the minimum within rounding), else a failure
         _, gn = _propose(u, H, g, LAMBDA_GN)
         at_min = -2.0 * jnp.dot(g, gn) < DECREMENT_TOL
-        return dict(u=u, H=H, g=g, J=J, chi2=chi2, trial=trial, lam=lam, step=s["step"] + 1,
-                    done=small | stuck, ok=small | (stuck & at_min))
+        end = small | stuck | s["back"] | (s["step"] + 1 >= max_steps)
+        u_in = jnp.clip(u, lo, hi)
+        back = end & ~s["back"] & jnp.any(u_in != u)
+        return dict(u=u, H=H, g=g, J=J, chi2=chi2, trial=jnp.where(back, u_in, trial), lam=lam,
+                    step=s["step"] + 1, done=end & ~back,
+                    ok=jnp.where(s["back"], s["ok"], small | (stuck & at_min)), back=back)
 
     s = jax.lax.while_loop(cond, body, init)
-    # an entry that ran beyond its limit (module doc) is brought back to it, and the
-    # linearisation (χ², JᵀJ, J) made again there: one more Jacobian, only where needed
-    u_end = jnp.clip(s["u"], lo, hi)
-    again = jnp.any(u_end != s["u"]) & (s["step"] > 0)
-    r, H, J = jax.lax.cond(again, lambda: (lambda r, H, g, J: (r, H, J))(*lin(u_end)),
-                           lambda: (jnp.zeros(r_shape.shape, u0.dtype), s["H"], s["J"]))
-    chi2 = jnp.where(again, jnp.sum(r ** 2), s["chi2"])
-    return LMResult(u_end, chi2, J, H, s["step"], s["ok"])
+    return LMResult(s["u"], s["chi2"], s["J"], s["H"], s["step"], s["ok"])
 
 
 @eqx.filter_jit
