@@ -32,8 +32,8 @@ data hardly constrain it): such an entry takes a vanishing step, a constrained o
 
 An entry of u that ends beyond its transform's range (`Transform.u_range`, the u its
 inverse gives; u_limits) is brought back to it by one more step, whose linearisation
-(made in the loop: a second copy of the Jacobian after it took S1063's compile from 25 to
-44 s) is what the errors come from; `success` is the fit's before that step.
+(made in the loop: a second copy of the Jacobian after it took S1063's compile from 31.6
+to 43.5 s on one host) is what the errors come from; `success` is the fit's before that step.
 A bounded parameter pushed to its bound runs on in u (an unresolved clump's R_e reached
 u = −446, dx/du 1e-196) until JᵀJ underflows, and the errors of every parameter of that
 clump came out wrong (`uncertainty.covariance_from_fisher_u`). Holding such entries during
