@@ -47,7 +47,9 @@ def re_upper_limit(model, data, state, slot: int, re_max_arcsec: float, *,
     clumps = state.source.clumps
     re_fit = float(clumps.re_arcsec[slot])
     d = [np.asarray(x) for x in data.images]
-    w = [np.asarray(m) / np.asarray(v) for m, v in zip(data.masks, data.variances)]
+    with np.errstate(divide="ignore", invalid="ignore"):   # masked pixels: weight 0 whatever σ²
+        w = [np.where(np.asarray(m) > 0, np.asarray(m) / np.asarray(v), 0.0)
+             for m, v in zip(data.masks, data.variances)]
 
     def images(re_arcsec, flux):
         st = eqx.tree_at(lambda s: (s.source.clumps.re_arcsec, s.source.clumps.flux), state,
