@@ -265,6 +265,28 @@ def test_lm_reports_success_only_at_a_minimum():
     assert not bool(stuck.success) and int(stuck.n_steps) < 100 and np.all(np.asarray(stuck.u) == 0)
 
 
+def test_lm_brings_an_entry_that_ran_past_its_limit_back_and_linearises_there():
+    """u_limits: x = sigmoid(u) fitted to data below its bound runs u off to −∞ (dx/du
+    underflows, and JᵀJ with it); with the transforms' limits the result sits at the limit,
+    its JᵀJ is that of the slope there (not 0), it is still converged, and the extra step is
+    counted. A fit that stays inside its limits is unchanged to the bit."""
+    from clumpylen_jax.inference.lm import levenberg_marquardt
+    from clumpylen_jax.inference.transforms import U_EDGE
+    resid = lambda u: 1e3 * (jax.nn.sigmoid(u) - jnp.array([-0.1, 0.3]))  # noqa: E731
+    free = levenberg_marquardt(resid, jnp.zeros(2), 400, 1e-10)
+    held = levenberg_marquardt(resid, jnp.zeros(2), 400, 1e-10, u_limits=(
+        np.array([-U_EDGE, -U_EDGE]), np.array([U_EDGE, U_EDGE])))
+    assert float(free.u[0]) < -U_EDGE - 5
+    assert float(held.u[0]) == -U_EDGE and bool(held.success) == bool(free.success)
+    slope = float(jax.nn.sigmoid(-U_EDGE) * (1 - jax.nn.sigmoid(-U_EDGE)))
+    assert float(held.jtj[0, 0]) == pytest.approx((1e3 * slope) ** 2, rel=1e-6)
+    assert int(held.n_steps) == int(free.n_steps) + 1 and float(held.u[1]) == float(free.u[1])
+    inside = levenberg_marquardt(lambda u: jax.nn.sigmoid(u) - 0.3, jnp.zeros(1), 100, 1e-10)
+    same = levenberg_marquardt(lambda u: jax.nn.sigmoid(u) - 0.3, jnp.zeros(1), 100, 1e-10,
+                               u_limits=(np.array([-U_EDGE]), np.array([U_EDGE])))
+    assert float(same.u[0]) == float(inside.u[0]) and int(same.n_steps) == int(inside.n_steps)
+
+
 def test_lm_damps_an_entry_whose_jacobian_column_all_but_vanishes():
     """lm.DAMPING_FLOOR: the third entry moves the residual by ~1e-98 per unit (erf far in its
     tail, as a clump's position when its light sits in one PSF sub-pixel), and a huge step in

@@ -230,7 +230,8 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
     normal: u ↦ (resid(u), JᵀJ, Jᵀr) instead of r_and_j, for a caller that builds the normal
     equations by blocks without one J (`capacity.solve_local_batch`); the result's
     jacobian is then None. u_limits: (lo, hi) [n] the result is brought back within
-    (`Parametrization.u_limits`: where JᵀJ in u keeps the Fisher matrix in x), or None."""
+    (`Parametrization.u_limits`: where JᵀJ in u keeps the Fisher matrix in x), or None;
+    that step counts in n_steps, which can then be max_steps + 1."""
     lo, hi = (jnp.asarray(a, u0.dtype) for a in
               ((-jnp.inf, jnp.inf) if u_limits is None else u_limits))
     lin = (lambda u: (*normal(u), None)) if normal is not None else \
@@ -269,7 +270,7 @@ def levenberg_marquardt(resid, u0, max_steps: int = 200, rtol: float = RTOL,
         at_min = -2.0 * jnp.dot(g, gn) < DECREMENT_TOL
         end = small | stuck | s["back"] | (s["step"] + 1 >= max_steps)
         u_in = jnp.clip(u, lo, hi)
-        back = end & ~s["back"] & jnp.any(u_in != u)
+        back = end & ~s["back"] & jnp.any((u < lo) | (u > hi))
         return dict(u=u, H=H, g=g, J=J, chi2=chi2, trial=jnp.where(back, u_in, trial), lam=lam,
                     step=s["step"] + 1, done=end & ~back,
                     ok=jnp.where(s["back"], s["ok"], small | (stuck & at_min)), back=back)
