@@ -56,7 +56,7 @@ from .catalog import fit_table, host_meta
 from .likelihood import chi2_and_images, make_data
 from .params import (Free, FitState, Parametrization, entry_kinds, make_state, parametrize,
                      take_rows)
-from .size_limits import re_upper_limit
+from .size_limits import re_upper_limits
 from .transforms import Transform
 from .uncertainty import Uncertainty, covariance_from_fisher_u
 
@@ -1261,9 +1261,8 @@ def _table(ctx, state, unc, idx, ok, spread, n_images, zeropoints_ab, prof=None)
     flag = flag | np.where(spread[0][idx] > np.maximum(3 * beta_err, 1e-9),
                            FLAGS["unstable_across_starts"], 0)
     # unresolved: the Fisher σ says nothing; the profile of χ² in R_e bounds it above
-    ul = np.full(len(idx), np.nan)
-    for row in np.nonzero(flag & FLAGS["size_unresolved"])[0]:
-        ul[row] = re_upper_limit(ctx.model, ctx.data, state, int(idx[row]), re_hi)
+    ul = re_upper_limits(ctx.model, ctx.data, state,
+                         np.where(flag & FLAGS["size_unresolved"], idx, -1), re_hi)
     t.add_column(ul, name="re_arcsec_ul", index=t.colnames.index("re_arcsec_err") + 1)
     t["re_arcsec_ul"].unit = "arcsec"
     corr, partner = _blends(unc, ctx.param.labels, idx)

@@ -64,25 +64,31 @@ def re_upper_limit(model, data, state, slot: int, re_max_arcsec: float, *,
     if re_fit >= re_max_arcsec:
         return float(re_max_arcsec)
     dark = images(re_fit, 0.0)
-    best = [flux_profiled_gain(images(re_fit, 1.0), dark, d, w)]
 
-    def rise(log_re):
-        g = flux_profiled_gain(images(float(np.exp(log_re)), 1.0), dark, d, w)
-        if not np.isfinite(g):
-            raise FloatingPointError
-        best[0] = max(best[0], g)    # a trial better than the fitted R_e becomes the reference
-        return best[0] - g
+    def gain(log_re):
+        return flux_profiled_gain(images(float(np.exp(log_re)), 1.0), dark, d, w)
 
     lo, hi = np.log(re_fit), np.log(re_max_arcsec)
-    try:
-        if not np.isfinite(best[0]) or rise(hi) < delta_chi2:
-            return float(re_max_arcsec) if np.isfinite(best[0]) else float("nan")
-        while hi - lo > np.log1p(rtol):
-            mid = 0.5 * (lo + hi)
-            if rise(mid) < delta_chi2:
-                lo = mid
-            else:
-                hi = mid
-    except FloatingPointError:
+    best, g = gain(lo), gain(hi)
+    if not np.isfinite(best + g):
         return float("nan")
+    best = max(best, g)      # a trial better than the fitted R_e becomes the reference
+    if best - g < delta_chi2:
+        return float(re_max_arcsec)
+    while hi - lo > np.log1p(rtol):
+        mid = 0.5 * (lo + hi)
+        g = gain(mid)
+        if not np.isfinite(g):
+            return float("nan")
+        best = max(best, g)
+        if best - g < delta_chi2:
+            lo = mid
+        else:
+            hi = mid
     return float(np.exp(hi))
+
+
+def re_upper_limits(model, data, state, slots, re_max_arcsec) -> np.ndarray:
+    """[len(slots)] `re_upper_limit` of each clump row in `slots` (ints; −1: none, NaN)."""
+    return np.array([re_upper_limit(model, data, state, int(i), re_max_arcsec) if i >= 0
+                     else np.nan for i in np.asarray(slots, int)], float)

@@ -44,6 +44,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..inference.catalog import ab_magnitude, ab_magnitude_err
+from ..inference.size_limits import re_upper_limits
 CALIBRATION_FLOOR = 0.05   # fractional flux error added in quadrature for the SED fit
 AGE_GRID = 60
 MASS_GRID = 241
@@ -114,7 +115,10 @@ def clump_rows(fit, observations, frame, scene, lens=None, alternatives=()):
     pix, theta, th_cov = _position_columns(t, frame, phi, cov, idx)
     re_err = np.array([_param_err(cov, idx, f"clumps.re_arcsec[{i}]") for i in range(n)])
     unresolved = re_err > re
-    re_ul = _re_upper_limits(fit, unresolved, opts.clump_re_max_arcsec)
+    # the σ of an unresolved R_e says nothing: the profile of χ² in R_e bounds it above
+    model, state = fit.drawing()
+    re_ul = re_upper_limits(model, fit.data, state, np.where(unresolved, np.arange(n), -1),
+                            opts.clump_re_max_arcsec)
     pa_theta = np.array([frame.pa_theta(phi[i], pa[i])[0] for i in range(n)])
     mu = None
     if lens is not None:
@@ -203,17 +207,6 @@ def _source_plane_columns(t, sp, th_cov, re, re_err, q, pa_theta):
     scale = np.array([s[0] / re[i] for i, s in enumerate(src)])
     t["q_src"] = [s[1] for s in src]
     return np.array([s[0] for s in src]), re_err * scale, b_cov
-
-
-def _re_upper_limits(fit, unresolved, re_max_arcsec):
-    """[N] observed R_e upper limits [arcsec] of the unresolved clumps, NaN elsewhere."""
-    from ..inference.size_limits import re_upper_limit
-    out = np.full(len(unresolved), np.nan)
-    if np.any(unresolved):
-        model, state = fit.drawing()
-        for i in np.nonzero(unresolved)[0]:
-            out[i] = re_upper_limit(model, fit.data, state, int(i), re_max_arcsec)
-    return out
 
 
 def _size_columns(t, re, re_err, re_ul, scene):
